@@ -1,0 +1,548 @@
+"""Camera models: pinhole, HALCON-style division, OpenCV radial-tangential.
+
+Convention:
+    Camera frame x right, y down, z along the optical axis; pixel (0, 0) is the centre of the
+    top-left pixel, u along the rows (x), v down the columns (y). Every model maps a camera-frame
+    point through an ideal pinhole ``K`` to *ideal* (undistorted) pixels, then through its lens
+    distortion to *observed* pixels::
+
+        ideal_px = K @ (X/Z, Y/Z, 1)          observed_px = distort_px(ideal_px)
+
+    All pose computations work on ideal pixels or on normalised coordinates ``K^-1 ideal_px``;
+    ``undistort_px`` is the exact inverse of ``distort_px`` (round trip below 1e-9 px).
+
+Files:
+    JSON (the format of ``shared/spec/camera_*.json``) and OpenCV FileStorage YAML
+    (``camera_matrix``, ``distortion_coefficients``, ``image_width``, ``image_height``).
+
+References:
+    HALCON area-scan division model: ``u_u = u_d / (1 + kappa r_d^2)`` in metric image-plane
+    coordinates (seed paper, Table 1). OpenCV ``calib3d`` documentation for the
+    radial-tangential (Brown-Conrady) model.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .errors import CameraFileError, InputError
+
+__all__ = [
+    "Camera", "PinholeCamera", "DivisionCamera", "OpenCVCamera",
+    "load_camera", "save_camera", "camera_from_dict", "default_camera",
+]
+
+
+def _as_points(points, last: int, name: str) -> np.ndarray:
+    a = np.asarray(points, dtype=float)
+    if a.ndim == 0 or a.shape[-1] != last:
+        raise InputError(f"{name} must have shape (..., {last}), got {a.shape}")
+    return a
+
+
+class Camera:
+    """Interface shared by every camera model.
+
+    Attributes
+    ----------
+    image_size_px : (width, height) in pixels.
+    K : (3, 3) ideal pinhole intrinsics.
+    """
+
+    model: str = "abstract"
+    image_size_px: tuple[int, int]
+    name: str = ""
+
+    @property
+    def K(self) -> np.ndarray:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    @property
+    def K_inv(self) -> np.ndarray:
+        return np.linalg.inv(self.K)
+
+    @property
+    def focal_px(self) -> float:
+        """Mean focal length in pixels (converts normalised errors to pixels)."""
+        return 0.5 * (self.K[0, 0] + self.K[1, 1])
+
+    # --- distortion (identity for the pinhole) ---------------------------------------------
+    def distort_px(self, ideal_px) -> np.ndarray:
+        """Ideal pinhole pixels -> observed pixels."""
+        return _as_points(ideal_px, 2, "ideal_px").copy()
+
+    def undistort_px(self, observed_px) -> np.ndarray:
+        """Observed pixels -> ideal pinhole pixels (exact inverse of :meth:`distort_px`)."""
+        return _as_points(observed_px, 2, "observed_px").copy()
+
+    # --- derived ---------------------------------------------------------------------------
+    def project(self, points_cam) -> np.ndarray:
+        """Camera-frame points ``(..., 3)`` -> observed pixels ``(..., 2)``.
+
+        Points with z <= 0 project to NaN.
+        """
+        p = _as_points(points_cam, 3, "points_cam")
+        with np.errstate(divide="ignore", invalid="ignore"):
+            z = np.where(p[..., 2] > 0, p[..., 2], np.nan)
+            xn = p[..., :2] / z[..., None]
+        K = self.K
+        ideal = np.stack([K[0, 0] * xn[..., 0] + K[0, 1] * xn[..., 1] + K[0, 2],
+                          K[1, 1] * xn[..., 1] + K[1, 2]], axis=-1)
+        return self.distort_px(ideal)
+
+    def normalize_px(self, observed_px) -> np.ndarray:
+        """Observed pixels -> normalised coordinates ``(x/z, y/z)`` of the ideal camera."""
+        ideal = self.undistort_px(observed_px)
+        K = self.K
+        y = (ideal[..., 1] - K[1, 2]) / K[1, 1]
+        x = (ideal[..., 0] - K[0, 2] - K[0, 1] * y) / K[0, 0]
+        return np.stack([x, y], axis=-1)
+
+    def pixel_to_ray(self, observed_px) -> np.ndarray:
+        """Observed pixels -> unit viewing rays ``(..., 3)`` in the camera frame."""
+        m = self.normalize_px(observed_px)
+        rays = np.concatenate([m, np.ones(m.shape[:-1] + (1,))], axis=-1)
+        return rays / np.linalg.norm(rays, axis=-1, keepdims=True)
+
+    def in_image(self, observed_px, margin_px: float = 0.0) -> np.ndarray:
+        """Boolean mask of pixels inside the image (with a margin)."""
+        p = np.asarray(observed_px, float)
+        w, h = self.image_size_px
+        return ((p[..., 0] >= margin_px) & (p[..., 0] <= w - 1 - margin_px)
+                & (p[..., 1] >= margin_px) & (p[..., 1] <= h - 1 - margin_px))
+
+    def to_dict(self) -> dict:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def to_pinhole(self) -> PinholeCamera:
+        """The ideal camera ``K`` without distortion."""
+        return PinholeCamera.from_matrix(self.K, self.image_size_px, name=self.name)
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}({json.dumps(self.to_dict())})"
+
+
+@dataclass(repr=False)
+class PinholeCamera(Camera):
+    """Ideal pinhole camera.
+
+    ``fx = f / sx``, ``fy = f / sy`` (focal length and pixel size in metres), principal point
+    ``(cx, cy)`` in pixels, optional skew.
+    """
+
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    image_size_px: tuple[int, int]
+    skew: float = 0.0
+    name: str = ""
+    model = "pinhole"
+
+    def __post_init__(self):
+        _check_positive_finite({"fx": self.fx, "fy": self.fy}, "pinhole camera")
+        _check_finite({"cx": self.cx, "cy": self.cy, "skew": self.skew}, "pinhole camera")
+        self.image_size_px = _check_size(self.image_size_px)
+
+    @classmethod
+    def from_matrix(cls, K, image_size_px, name: str = "") -> PinholeCamera:
+        K = np.asarray(K, float)
+        if K.shape != (3, 3):
+            raise InputError(f"K must be 3x3, got {K.shape}")
+        return cls(K[0, 0], K[1, 1], K[0, 2], K[1, 2], tuple(image_size_px), skew=K[0, 1],
+                   name=name)
+
+    @property
+    def K(self) -> np.ndarray:
+        return np.array([[self.fx, self.skew, self.cx], [0.0, self.fy, self.cy], [0, 0, 1.0]])
+
+    def to_dict(self) -> dict:
+        return {"name": self.name, "model": "pinhole", "image_size_px": list(self.image_size_px),
+                "camera_matrix": self.K.tolist(), "distortion": None}
+
+
+@dataclass(repr=False)
+class DivisionCamera(Camera):
+    """HALCON ``area_scan_division`` camera (the seed paper's Table 1).
+
+    With metric image-plane coordinates ``x_d = (u - cx) sx``, ``y_d = (v - cy) sy`` of an observed
+    pixel and ``r_d^2 = x_d^2 + y_d^2``, the undistorted coordinates are
+
+        x_u = x_d / (1 + kappa r_d^2),   y_u = y_d / (1 + kappa r_d^2)
+
+    and an ideal pinhole of focal length ``f`` gives ``x_u = f X / Z``. The inverse is closed-form:
+    ``r_u = r_d / (1 + kappa r_d^2)`` is a quadratic in ``r_d`` whose root near ``r_u`` is
+
+        r_d = 2 r_u / (1 + sqrt(1 - 4 kappa r_u^2)),
+
+    so ``x_d = x_u * 2 / (1 + sqrt(1 - 4 kappa r_u^2))``. For ``kappa > 0`` the square root turns
+    imaginary beyond ``r_u = 1 / (2 sqrt(kappa))``: such points are not imaged (NaN).
+    """
+
+    focal_length_m: float
+    kappa_per_m2: float
+    pixel_size_m: tuple[float, float]
+    principal_point_px: tuple[float, float]
+    image_size_px: tuple[int, int]
+    name: str = ""
+    model = "division"
+
+    def __post_init__(self):
+        _check_positive_finite({"focal_length_m": self.focal_length_m}, "division camera")
+        _check_finite({"kappa_per_m2": self.kappa_per_m2}, "division camera")
+        sx, sy = _check_pair(self.pixel_size_m, "pixel_size_m", positive=True)
+        cx, cy = _check_pair(self.principal_point_px, "principal_point_px")
+        self.pixel_size_m = (sx, sy)
+        self.principal_point_px = (cx, cy)
+        self.image_size_px = _check_size(self.image_size_px)
+
+    @property
+    def K(self) -> np.ndarray:
+        sx, sy = self.pixel_size_m
+        cx, cy = self.principal_point_px
+        f = self.focal_length_m
+        return np.array([[f / sx, 0.0, cx], [0.0, f / sy, cy], [0.0, 0.0, 1.0]])
+
+    def _metric(self, px):
+        sx, sy = self.pixel_size_m
+        cx, cy = self.principal_point_px
+        return (px[..., 0] - cx) * sx, (px[..., 1] - cy) * sy
+
+    def _pixels(self, x, y):
+        sx, sy = self.pixel_size_m
+        cx, cy = self.principal_point_px
+        return np.stack([x / sx + cx, y / sy + cy], axis=-1)
+
+    def undistort_px(self, observed_px) -> np.ndarray:
+        p = _as_points(observed_px, 2, "observed_px")
+        x, y = self._metric(p)
+        s = 1.0 / (1.0 + self.kappa_per_m2 * (x * x + y * y))
+        return self._pixels(x * s, y * s)
+
+    def distort_px(self, ideal_px) -> np.ndarray:
+        p = _as_points(ideal_px, 2, "ideal_px")
+        x, y = self._metric(p)
+        disc = 1.0 - 4.0 * self.kappa_per_m2 * (x * x + y * y)
+        with np.errstate(invalid="ignore"):
+            s = 2.0 / (1.0 + np.sqrt(np.where(disc >= 0, disc, np.nan)))
+        return self._pixels(x * s, y * s)
+
+    def to_dict(self) -> dict:
+        return {"name": self.name, "model": "division",
+                "image_size_px": list(self.image_size_px),
+                "focal_length_m": self.focal_length_m, "kappa_per_m2": self.kappa_per_m2,
+                "pixel_size_m": list(self.pixel_size_m),
+                "principal_point_px": list(self.principal_point_px)}
+
+
+@dataclass(repr=False)
+class OpenCVCamera(Camera):
+    """OpenCV's radial-tangential model (``k1, k2, p1, p2[, k3[, k4, k5, k6]]``).
+
+    With normalised coordinates ``(x, y)`` and ``r^2 = x^2 + y^2``::
+
+        radial = (1 + k1 r^2 + k2 r^4 + k3 r^6) / (1 + k4 r^2 + k5 r^4 + k6 r^6)
+        x_d = x radial + 2 p1 x y + p2 (r^2 + 2 x^2)
+        y_d = y radial + p1 (r^2 + 2 y^2) + 2 p2 x y
+
+    Undistortion has no closed form; it runs Newton's method with the analytic Jacobian to
+    machine precision (``cv2.undistortPoints`` stops at a fixed iteration count, which is not
+    enough for 1e-9 px round trips at the image corners).
+    """
+
+    camera_matrix: np.ndarray
+    dist_coeffs: np.ndarray
+    image_size_px: tuple[int, int]
+    name: str = ""
+    model = "opencv"
+
+    def __post_init__(self):
+        K = np.asarray(self.camera_matrix, float)
+        if K.shape != (3, 3) or not np.all(np.isfinite(K)):
+            raise CameraFileError(f"camera_matrix must be a finite 3x3 matrix, got {K.shape}")
+        if K[0, 0] <= 0 or K[1, 1] <= 0:
+            raise CameraFileError("camera_matrix: focal lengths fx, fy must be positive")
+        d = np.asarray(self.dist_coeffs, float).ravel()
+        if d.size not in (4, 5, 8) or not np.all(np.isfinite(d)):
+            raise CameraFileError(
+                "distortion_coefficients: need 4, 5 or 8 finite values (k1 k2 p1 p2 [k3 [k4 k5 "
+                f"k6]]); got {d.size} (thin-prism and tilt terms are not supported)")
+        self.camera_matrix = K
+        self.dist_coeffs = d
+        self.image_size_px = _check_size(self.image_size_px)
+
+    @property
+    def K(self) -> np.ndarray:
+        return self.camera_matrix.copy()
+
+    def _coeffs(self):
+        d = np.zeros(8)
+        d[: self.dist_coeffs.size] = self.dist_coeffs
+        return d
+
+    def _distort_norm(self, x, y, jacobian: bool = False):
+        k1, k2, p1, p2, k3, k4, k5, k6 = self._coeffs()
+        r2 = x * x + y * y
+        num = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+        den = 1 + r2 * (k4 + r2 * (k5 + r2 * k6))
+        radial = num / den
+        xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
+        yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+        if not jacobian:
+            return xd, yd
+        dnum = k1 + r2 * (2 * k2 + 3 * k3 * r2)
+        dden = k4 + r2 * (2 * k5 + 3 * k6 * r2)
+        drad = (dnum * den - num * dden) / (den * den)  # d radial / d r2
+        j00 = radial + 2 * x * x * drad + 2 * p1 * y + 6 * p2 * x
+        j01 = 2 * x * y * drad + 2 * p1 * x + 2 * p2 * y
+        j10 = 2 * x * y * drad + 2 * p1 * x + 2 * p2 * y
+        j11 = radial + 2 * y * y * drad + 6 * p1 * y + 2 * p2 * x
+        return xd, yd, j00, j01, j10, j11
+
+    def _to_norm(self, px):
+        K = self.camera_matrix
+        y = (px[..., 1] - K[1, 2]) / K[1, 1]
+        x = (px[..., 0] - K[0, 2] - K[0, 1] * y) / K[0, 0]
+        return x, y
+
+    def _to_px(self, x, y):
+        K = self.camera_matrix
+        return np.stack([K[0, 0] * x + K[0, 1] * y + K[0, 2], K[1, 1] * y + K[1, 2]], axis=-1)
+
+    def distort_px(self, ideal_px) -> np.ndarray:
+        p = _as_points(ideal_px, 2, "ideal_px")
+        return self._to_px(*self._distort_norm(*self._to_norm(p)))
+
+    def undistort_px(self, observed_px, iterations: int = 50) -> np.ndarray:
+        p = _as_points(observed_px, 2, "observed_px")
+        xd, yd = self._to_norm(p)
+        x, y = xd.copy(), yd.copy()
+        for _ in range(iterations):
+            fx_, fy_, a, b, c, d = self._distort_norm(x, y, jacobian=True)
+            rx, ry = fx_ - xd, fy_ - yd
+            det = a * d - b * c
+            dx = (d * rx - b * ry) / det
+            dy = (a * ry - c * rx) / det
+            x = x - dx
+            y = y - dy
+            step = np.nanmax(np.abs(np.concatenate([np.ravel(dx), np.ravel(dy)])), initial=0.0)
+            if step < 1e-15:
+                break
+        return self._to_px(x, y)
+
+    def to_dict(self) -> dict:
+        return {"name": self.name, "model": "opencv", "image_size_px": list(self.image_size_px),
+                "camera_matrix": self.camera_matrix.tolist(),
+                "distortion_coefficients": self.dist_coeffs.tolist()}
+
+
+# ------------------------------------------------------------------------------------------
+# validation helpers
+def _check_finite(values: dict, what: str):
+    for k, v in values.items():
+        if not isinstance(v, (int, float, np.floating, np.integer)) or isinstance(v, bool):
+            raise CameraFileError(f"{what}: field '{k}' must be a number, got {type(v).__name__}")
+        if not math.isfinite(float(v)):
+            raise CameraFileError(f"{what}: field '{k}' must be finite, got {v}")
+
+
+def _check_positive_finite(values: dict, what: str):
+    _check_finite(values, what)
+    for k, v in values.items():
+        if float(v) <= 0:
+            raise CameraFileError(f"{what}: field '{k}' must be positive, got {v}")
+
+
+def _check_pair(v, field: str, positive: bool = False):
+    try:
+        a, b = (float(x) for x in v)
+    except (TypeError, ValueError):
+        raise CameraFileError(f"field '{field}' must be a pair of numbers, got {v!r}") from None
+    if not (math.isfinite(a) and math.isfinite(b)):
+        raise CameraFileError(f"field '{field}' must be finite, got {v!r}")
+    if positive and (a <= 0 or b <= 0):
+        raise CameraFileError(f"field '{field}' must be positive, got {v!r}")
+    return a, b
+
+
+def _check_size(v):
+    try:
+        w, h = v
+        if isinstance(w, bool) or isinstance(h, bool) or int(w) != w or int(h) != h:
+            raise ValueError
+        w, h = int(w), int(h)
+    except (TypeError, ValueError):
+        raise CameraFileError(
+            f"field 'image_size_px' must be two integers (width, height), got {v!r}") from None
+    if w <= 0 or h <= 0:
+        raise CameraFileError(f"field 'image_size_px' must be positive, got {v!r}")
+    return (w, h)
+
+
+# ------------------------------------------------------------------------------------------
+# files
+def _require(d: dict, key: str, where: str):
+    if key not in d:
+        raise CameraFileError(f"{where}: missing field '{key}'")
+    return d[key]
+
+
+def camera_from_dict(d: dict, where: str = "camera") -> Camera:
+    """Build a camera from the JSON object of ``shared/spec/camera_*.json``.
+
+    ``model`` is ``pinhole`` (either ``camera_matrix`` or ``focal_length_m`` + ``pixel_size_m`` +
+    ``principal_point_px``), ``division`` (``focal_length_m``, ``kappa_per_m2``, ``pixel_size_m``,
+    ``principal_point_px``) or ``opencv`` (``camera_matrix``, ``distortion_coefficients``).
+    """
+    if not isinstance(d, dict):
+        raise CameraFileError(f"{where}: expected a JSON object, got {type(d).__name__}")
+    model = _require(d, "model", where)
+    size = _require(d, "image_size_px", where)
+    name = str(d.get("name", ""))
+    if model == "pinhole":
+        if "camera_matrix" in d:
+            K = _matrix(d["camera_matrix"], "camera_matrix", where)
+            return PinholeCamera.from_matrix(K, _check_size(size), name=name)
+        f = _number(_require(d, "focal_length_m", where), "focal_length_m", where)
+        sx, sy = _check_pair(_require(d, "pixel_size_m", where), "pixel_size_m", positive=True)
+        cx, cy = _check_pair(_require(d, "principal_point_px", where), "principal_point_px")
+        if d.get("distortion") not in (None, {}, []):
+            raise CameraFileError(f"{where}: a pinhole camera has no 'distortion'; use model "
+                                  "'division' or 'opencv'")
+        return PinholeCamera(f / sx, f / sy, cx, cy, _check_size(size), name=name)
+    if model == "division":
+        return DivisionCamera(
+            focal_length_m=_number(_require(d, "focal_length_m", where), "focal_length_m", where),
+            kappa_per_m2=_number(_require(d, "kappa_per_m2", where), "kappa_per_m2", where),
+            pixel_size_m=_require(d, "pixel_size_m", where),
+            principal_point_px=_require(d, "principal_point_px", where),
+            image_size_px=size, name=name)
+    if model == "opencv":
+        K = _matrix(_require(d, "camera_matrix", where), "camera_matrix", where)
+        dist = _require(d, "distortion_coefficients", where)
+        try:
+            dist = np.asarray(dist, float).ravel()
+        except (TypeError, ValueError):
+            raise CameraFileError(
+                f"{where}: field 'distortion_coefficients' must be a list of numbers") from None
+        return OpenCVCamera(K, dist, size, name=name)
+    raise CameraFileError(f"{where}: field 'model' must be 'pinhole', 'division' or 'opencv', "
+                          f"got {model!r}")
+
+
+def _number(v, field: str, where: str) -> float:
+    if isinstance(v, bool) or not isinstance(v, (int, float)):
+        raise CameraFileError(f"{where}: field '{field}' must be a number, got {v!r}")
+    if not math.isfinite(v):
+        raise CameraFileError(f"{where}: field '{field}' must be finite, got {v!r}")
+    return float(v)
+
+
+def _matrix(v, field: str, where: str) -> np.ndarray:
+    try:
+        K = np.asarray(v, float)
+    except (TypeError, ValueError):
+        raise CameraFileError(f"{where}: field '{field}' must be a 3x3 matrix of numbers") from None
+    if K.size == 9:
+        K = K.reshape(3, 3)
+    if K.shape != (3, 3) or not np.all(np.isfinite(K)):
+        raise CameraFileError(f"{where}: field '{field}' must be a finite 3x3 matrix")
+    return K
+
+
+def _read_opencv_yaml(path: Path) -> Camera:
+    import cv2
+
+    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+    if not fs.isOpened():
+        raise CameraFileError(f"{path}: not a readable OpenCV FileStorage file")
+    try:
+        where = str(path)
+
+        def node(key):
+            n = fs.getNode(key)
+            if n.empty():
+                raise CameraFileError(f"{where}: missing field '{key}'")
+            return n
+
+        K = node("camera_matrix").mat()
+        if K is None:
+            raise CameraFileError(f"{where}: field 'camera_matrix' is not a matrix")
+        dist = node("distortion_coefficients").mat()
+        if dist is None:
+            raise CameraFileError(f"{where}: field 'distortion_coefficients' is not a matrix")
+        w = node("image_width").real()
+        h = node("image_height").real()
+        name = fs.getNode("name").string() if not fs.getNode("name").empty() else ""
+    finally:
+        fs.release()
+    K = _matrix(K, "camera_matrix", where)
+    dist = np.asarray(dist, float).ravel()
+    if dist.size == 0 or np.allclose(dist, 0):
+        return PinholeCamera.from_matrix(K, _check_size((w, h)), name=name)
+    return OpenCVCamera(K, dist, (w, h), name=name)
+
+
+def _write_opencv_yaml(cam: Camera, path: Path) -> None:
+    import cv2
+
+    if isinstance(cam, DivisionCamera):
+        raise CameraFileError(
+            "OpenCV YAML cannot hold the division model exactly; convert it to the opencv "
+            "model first (cutterpose camera convert)")
+    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
+    fs.write("image_width", int(cam.image_size_px[0]))
+    fs.write("image_height", int(cam.image_size_px[1]))
+    fs.write("camera_matrix", cam.K)
+    dist = cam.dist_coeffs if isinstance(cam, OpenCVCamera) else np.zeros(5)
+    fs.write("distortion_coefficients", np.asarray(dist, float).reshape(1, -1))
+    if cam.name:
+        fs.write("name", cam.name)
+    fs.release()
+
+
+def load_camera(path) -> Camera:
+    """Read a camera file: JSON (``.json``) or OpenCV FileStorage YAML (``.yml``/``.yaml``/``.xml``).
+
+    Raises
+    ------
+    CameraFileError
+        If the file is missing or malformed; the message names the field.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise CameraFileError(f"{path}: camera file not found")
+    suffix = path.suffix.lower()
+    if suffix in (".yml", ".yaml", ".xml"):
+        return _read_opencv_yaml(path)
+    try:
+        d = json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise CameraFileError(f"{path}: not valid JSON ({e})") from None
+    return camera_from_dict(d, where=str(path))
+
+
+def save_camera(cam: Camera, path) -> None:
+    """Write a camera as JSON (``.json``) or OpenCV YAML (``.yml``/``.yaml``/``.xml``)."""
+    path = Path(path)
+    if path.suffix.lower() in (".yml", ".yaml", ".xml"):
+        _write_opencv_yaml(cam, path)
+    else:
+        path.write_text(json.dumps(cam.to_dict(), indent=2) + "\n")
+
+
+def default_camera(which: str = "table1") -> Camera:
+    """The bundled cameras: ``"table1"`` (division model of the paper's Table 1) or
+    ``"synthetic"`` (pinhole of the synthetic experiments)."""
+    from importlib import resources
+
+    names = {"table1": "camera_table1.json", "synthetic": "camera_synthetic.json"}
+    if which not in names:
+        raise InputError(f"unknown default camera {which!r}; choose from {sorted(names)}")
+    text = resources.files("cutterpose.data").joinpath(names[which]).read_text()
+    return camera_from_dict(json.loads(text), where=names[which])

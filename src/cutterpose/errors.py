@@ -1,0 +1,49 @@
+"""Typed errors of cutterpose.
+
+Every error the package raises on purpose derives from :class:`CutterposeError`, so a caller (the
+CLI, a robot controller) can catch all expected failures with one ``except`` and let real bugs
+surface as tracebacks.
+"""
+
+from __future__ import annotations
+
+
+class CutterposeError(Exception):
+    """Base class of every expected failure in cutterpose."""
+
+
+class InputError(CutterposeError, ValueError):
+    """An argument has the wrong shape, type or value (NaN, inf, mismatched arrays...)."""
+
+
+class DegenerateInputError(InputError):
+    """The input is well formed but geometrically degenerate (too few points, collinear points,
+    points behind the camera, a pose outside the motion range...)."""
+
+
+class ModelFileError(CutterposeError, ValueError):
+    """A camera or holder file is missing, unreadable or malformed.
+
+    The message names the file and the offending field.
+    """
+
+
+class CameraFileError(ModelFileError):
+    """A camera file is malformed."""
+
+
+class HolderModelError(ModelFileError):
+    """A holder model is malformed (not closed, not simple, not planar, edges not in two
+    directions...)."""
+
+
+class ImageError(CutterposeError):
+    """An image cannot be used: missing, unreadable, wrong size, black, saturated..."""
+
+
+class FeatureError(CutterposeError):
+    """The image processing could not extract the holder's 20 characteristic segments."""
+
+
+class NoSolutionError(CutterposeError):
+    """A solver found no admissible pose."""

@@ -1,0 +1,92 @@
+"""The registry of pose methods, by name.
+
+Every method has the common signature ``solve(points_px, camera, model) -> PoseEstimate``. A
+method with ``needs_correspondences = False`` (the paper's ``initial``, ``dm`` and ``dm+``)
+receives the detected corners in contour order but with an unknown start and direction, and must
+not rely on their order.
+
+``<name>+lm`` is any correspondence method followed by Levenberg-Marquardt on the pixel
+reprojection error (:mod:`cutterpose.pnp.refine`).
+
+Entries are imported lazily so that ``import cutterpose`` stays light and worker processes resolve
+methods by name.
+"""
+
+from __future__ import annotations
+
+import importlib
+from collections.abc import Callable
+from dataclasses import dataclass
+
+from .errors import InputError
+
+__all__ = ["Method", "get_method", "available_methods", "parse_methods"]
+
+
+@dataclass(frozen=True)
+class Method:
+    name: str
+    solve: Callable
+    needs_correspondences: bool = True
+    description: str = ""
+
+
+# name -> (module, attribute, needs_correspondences, description)
+_ENTRIES: dict[str, tuple[str, str, bool, str]] = {
+    "opencv-sqpnp": ("cutterpose.pnp.opencv_ref", "solve_sqpnp", True,
+                     "OpenCV SQPnP (reference)"),
+    "opencv-ippe-lm": ("cutterpose.pnp.opencv_ref", "solve_ippe_lm", True,
+                       "OpenCV IPPE + solvePnPRefineLM: the ML reference"),
+    "dlt": ("cutterpose.pnp.dlt", "solve", True, "DLT (homography for planar points)"),
+    "epnp": ("cutterpose.pnp.epnp", "solve", True, "EPnP (Lepetit et al. 2009)"),
+    "rpnp": ("cutterpose.pnp.rpnp", "solve", True, "RPnP (Li et al. 2012)"),
+    "aspnp": ("cutterpose.pnp.aspnp", "solve", True, "ASPnP (Zheng et al. 2013)"),
+    "opnp": ("cutterpose.pnp.opnp", "solve", True, "OPnP (Zheng et al. 2013)"),
+    "initial": ("cutterpose.vanishing", "solve", False,
+                "initial pose from vanishing points and contour area (paper 2.2)"),
+    "initial-paper": ("cutterpose.vanishing", "solve_paper", False,
+                      "initial pose, the paper's image-plane vanishing-point median"),
+    "dm": ("cutterpose.matching", "solve_dm", False, "distance matching (paper 2.3)"),
+    "dm+": ("cutterpose.matching", "solve_dm_plus", False,
+            "distance matching + continuous correspondence-free refinement"),
+}
+
+
+def available_methods() -> list[str]:
+    """Names of the registered methods whose module is importable."""
+    out = []
+    for name, (mod, attr, _, _) in _ENTRIES.items():
+        try:
+            getattr(importlib.import_module(mod), attr)
+        except (ImportError, AttributeError):
+            continue
+        out.append(name)
+    return out
+
+
+def get_method(name: str) -> Method:
+    """Resolve a method by name (``<name>+lm`` adds LM refinement to a correspondence method)."""
+    if name.endswith("+lm"):
+        base = get_method(name[:-3])
+        if not base.needs_correspondences:
+            raise InputError(f"'+lm' needs a correspondence method; {base.name} has none")
+        refine = importlib.import_module("cutterpose.pnp.refine")
+        return Method(name, refine.with_refinement(base.solve, name), True,
+                      base.description + " + LM refinement")
+    if name not in _ENTRIES:
+        raise InputError(f"unknown method {name!r}; choose from {', '.join(_ENTRIES)} "
+                         "(or <pnp-method>+lm)")
+    mod, attr, corr, desc = _ENTRIES[name]
+    try:
+        fn = getattr(importlib.import_module(mod), attr)
+    except (ImportError, AttributeError) as e:
+        raise InputError(f"method {name!r} is not available in this build ({e})") from None
+    return Method(name, fn, corr, desc)
+
+
+def parse_methods(spec: str) -> list[Method]:
+    """``"a,b,c"`` -> methods; an unknown name fails before any work starts."""
+    names = [s.strip() for s in spec.split(",") if s.strip()]
+    if not names:
+        raise InputError("no method given")
+    return [get_method(n) for n in names]

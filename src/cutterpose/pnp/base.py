@@ -1,0 +1,184 @@
+"""What every PnP solver shares: input checks, normalisation, candidate selection, timing.
+
+A solver module implements one function::
+
+    candidates(points_obj_mm: (n, 3), m: (n, 2)) -> list[(R, t_mm)]
+
+on normalised image coordinates ``m = K^-1 ideal_px`` (undistorted), and wraps it with
+:func:`make_solver`, which gives it the common signature::
+
+    solve(points_px, camera, model) -> PoseEstimate
+
+``model`` is a :class:`~cutterpose.holder.Holder` (its 20 corners, in model order) or any
+``(n, 3)`` array of object points (non-planar sets included). The wrapper
+
+* rejects bad input with typed errors (shape mismatch, NaN/inf, too few points, collinear points);
+* drops candidates that are not finite or put a point behind the camera;
+* picks the candidate with the least RMS reprojection error (ideal pixels) and reports the
+  ratio best / second-best as ``ambiguity_ratio``;
+* returns a falsy :class:`~cutterpose.estimate.PoseEstimate` with the reason when nothing is left.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+
+import numpy as np
+
+from ..camera import Camera
+from ..errors import DegenerateInputError, InputError
+from ..estimate import PoseEstimate
+from ..holder import Holder
+
+__all__ = ["model_points", "check_correspondences", "reprojection_rms", "select", "make_solver",
+           "is_planar", "plane_frame", "align_rigid"]
+
+Candidate = tuple[np.ndarray, np.ndarray]
+
+
+def model_points(model) -> np.ndarray:
+    """(n, 3) object points of a holder or of a point array."""
+    if isinstance(model, Holder):
+        return model.points_holder_mm
+    try:
+        P = np.asarray(model, dtype=float)
+    except (TypeError, ValueError):
+        raise InputError("model must be a Holder or an (n, 3) array of object points") from None
+    if P.ndim != 2 or P.shape[1] != 3:
+        raise InputError(f"object points must have shape (n, 3), got {P.shape}")
+    return P
+
+
+def check_correspondences(points_px, points_obj, min_points: int) -> tuple[np.ndarray, np.ndarray]:
+    """Validate image/object correspondences; return them as float arrays.
+
+    Raises
+    ------
+    InputError
+        Shapes do not match, or values are NaN/inf.
+    DegenerateInputError
+        Fewer than ``min_points`` points, or all points (image or object) collinear.
+    """
+    try:
+        x = np.asarray(points_px, dtype=float)
+    except (TypeError, ValueError):
+        raise InputError("points_px must be an (n, 2) array of numbers") from None
+    P = np.asarray(points_obj, dtype=float)
+    if x.ndim != 2 or x.shape[1] != 2:
+        raise InputError(f"points_px must have shape (n, 2), got {x.shape}")
+    if len(x) != len(P):
+        raise InputError(f"points_px has {len(x)} points but the model has {len(P)}; they must "
+                         "correspond one to one")
+    if not np.all(np.isfinite(x)):
+        raise InputError(f"points_px holds NaN or inf (at {np.argwhere(~np.isfinite(x))[0, 0]})")
+    if not np.all(np.isfinite(P)):
+        raise InputError("object points hold NaN or inf")
+    if len(x) < min_points:
+        raise DegenerateInputError(f"need at least {min_points} points, got {len(x)}")
+    for arr, what in ((x, "image points"), (P, "object points")):
+        c = arr - arr.mean(axis=0)
+        s = np.linalg.svd(c, compute_uv=False)
+        if s[0] <= 0 or s[1] / s[0] < 1e-9:
+            raise DegenerateInputError(f"all {what} are collinear (or coincide): the pose is not "
+                                       "determined")
+    return x, P
+
+
+def is_planar(P: np.ndarray, tol: float = 1e-6) -> bool:
+    """Singular-value test of the notes (section 6.3): ``s3 / s1 < tol``."""
+    s = np.linalg.svd(P - P.mean(axis=0), compute_uv=False)
+    return bool(s[2] <= tol * s[0])
+
+
+def plane_frame(P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Rotation W and centroid c such that ``W (P - c)`` has zero third coordinate.
+
+    A pose ``(R', t')`` found in the plane frame maps back as ``R = R' W``,
+    ``t = t' - R' W c``.
+    """
+    c = P.mean(axis=0)
+    U, _, _ = np.linalg.svd((P - c).T)
+    v1, v2 = U[:, 0], U[:, 1]
+    W = np.vstack([v1, v2, np.cross(v1, v2)])
+    return W, c
+
+
+def align_rigid(P: np.ndarray, X: np.ndarray) -> Candidate:
+    """Least-squares rigid motion ``X ~ R P + t`` (Umeyama/Kabsch with the correct reflection
+    rule ``S = diag(1, 1, det U det V)``, the notes' AL-ok; valid for planar sets)."""
+    Pc, Xc = P.mean(axis=0), X.mean(axis=0)
+    S = (X - Xc).T @ (P - Pc)
+    U, _, Vt = np.linalg.svd(S)
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U) * np.linalg.det(Vt)) or 1.0])
+    R = U @ D @ Vt
+    return R, Xc - R @ Pc
+
+
+def reprojection_rms(R, t, P, m) -> float:
+    """RMS reprojection error in normalised units (multiply by f for pixels)."""
+    X = P @ np.asarray(R).T + np.asarray(t)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        proj = X[:, :2] / X[:, 2:3]
+    return float(np.sqrt(np.mean(np.sum((proj - m) ** 2, axis=1))))
+
+
+def select(method: str, cands: list[Candidate], P, m, f_px: float) -> PoseEstimate:
+    """Pick the candidate with the least reprojection error; see the module docstring."""
+    scored = []
+    for R, t in cands:
+        R = np.asarray(R, float)
+        t = np.asarray(t, float).reshape(3)
+        if not (np.all(np.isfinite(R)) and np.all(np.isfinite(t))):
+            continue
+        if abs(np.linalg.det(R) - 1) > 1e-6:
+            continue
+        z = P @ R[2] + t[2]
+        if np.any(z <= 0):
+            continue
+        scored.append((reprojection_rms(R, t, P, m), R, t))
+    if not scored:
+        reason = ("no candidate pose" if not cands
+                  else f"none of {len(cands)} candidates is finite with all points in front")
+        return PoseEstimate.failure(method, reason, info={"n_candidates": len(cands)})
+    scored.sort(key=lambda s: s[0])
+    best = scored[0]
+    ratio = np.nan
+    # a second candidate counts only when it is a different pose, not a duplicate
+    for e, R, t in scored[1:]:
+        if np.abs(R - best[1]).max() > 1e-6 or np.abs(t - best[2]).max() > 1e-6:
+            ratio = best[0] / e if e > 0 else 1.0
+            break
+    return PoseEstimate(method=method, R_cam_holder=best[1], t_cam_holder_mm=best[2],
+                        residual_px=best[0] * f_px, ambiguity_ratio=float(ratio),
+                        candidates=[(R, t) for _, R, t in scored],
+                        info={"n_candidates": len(cands)})
+
+
+def make_solver(method: str, candidates: Callable[[np.ndarray, np.ndarray], list[Candidate]],
+                min_points: int) -> Callable[..., PoseEstimate]:
+    """Give a ``candidates(P, m)`` function the common solver signature."""
+
+    def solve(points_px, camera: Camera, model) -> PoseEstimate:
+        t0 = time.perf_counter()
+        P = model_points(model)
+        x, P = check_correspondences(points_px, P, min_points)
+        m = camera.normalize_px(x)
+        if not np.all(np.isfinite(m)):
+            raise InputError("points_px lie outside the camera's valid distortion domain")
+        try:
+            cands = candidates(P, m)
+        except np.linalg.LinAlgError as e:
+            cands = []
+            reason = f"linear algebra failed: {e}"
+        else:
+            reason = ""
+        est = select(method, cands, P, m, camera.focal_px)
+        if reason and not est:
+            est.reason = reason
+        est.time_ms = (time.perf_counter() - t0) * 1e3
+        return est
+
+    solve.__name__ = f"solve_{method.replace('-', '_')}"
+    solve.__doc__ = f"{method}: ``solve(points_px, camera, model) -> PoseEstimate``."
+    return solve

@@ -1,0 +1,213 @@
+"""Poses, the Euler-angle convention of the protocol, and the protocol's error figures.
+
+Convention:
+    A pose is the holder frame expressed in the camera frame::
+
+        x_cam = R_cam_holder @ x_holder + t_cam_holder_mm
+
+    ``R_cam_holder = Rz(gamma) @ Ry(beta) @ Rx(alpha)`` with alpha, beta, gamma in degrees
+    (intrinsic Z-Y'-X'' angles, scipy's ``"ZYX"`` order with the angles given as
+    ``[gamma, beta, alpha]``). Translations are in millimetres. Camera frame: x right, y down,
+    z along the optical axis. The nominal pose is ``R = I``, ``t = (0, 0, 600)`` mm.
+
+    Frames are named in variable names as ``R_<to>_<from>``; :class:`Pose` carries the names and
+    refuses to compose poses whose frames do not chain.
+
+References:
+    ``shared/spec/PROTOCOL.md`` (section "Pose" and "Error figures").
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from .errors import InputError
+
+#: Gross-failure thresholds of the protocol.
+FAIL_ROT_DEG = 2.0
+FAIL_TRANS_MM = 10.0
+
+NOMINAL_T_MM = np.array([0.0, 0.0, 600.0])
+
+
+def rotation_from_euler_deg(alpha_deg, beta_deg, gamma_deg) -> np.ndarray:
+    """``Rz(gamma) @ Ry(beta) @ Rx(alpha)``; vectorised over the angles' common shape.
+
+    Returns an array of shape ``(..., 3, 3)``.
+    """
+    a, b, g = np.broadcast_arrays(
+        np.asarray(alpha_deg, float), np.asarray(beta_deg, float), np.asarray(gamma_deg, float)
+    )
+    shape = a.shape
+    angles = np.stack([g.ravel(), b.ravel(), a.ravel()], axis=-1)
+    R = Rotation.from_euler("ZYX", angles, degrees=True).as_matrix()
+    return R.reshape(*shape, 3, 3)
+
+
+def euler_deg_from_rotation(R) -> np.ndarray:
+    """Inverse of :func:`rotation_from_euler_deg`: ``(..., 3)`` array of (alpha, beta, gamma) deg.
+
+    Near ``beta = +-90 deg`` (gimbal lock) alpha and gamma are not unique; scipy then sets one of
+    them to zero. The protocol's ranges (|beta| <= 60 deg) stay far from it.
+    """
+    R = np.asarray(R, float)
+    shape = R.shape[:-2]
+    zyx = Rotation.from_matrix(R.reshape(-1, 3, 3)).as_euler("ZYX", degrees=True)
+    return zyx[:, ::-1].reshape(*shape, 3)
+
+
+def nearest_rotation(M) -> np.ndarray:
+    """The rotation closest to ``M`` in Frobenius norm (orthogonal polar factor, det = +1)."""
+    M = np.asarray(M, float)
+    U, _, Vt = np.linalg.svd(M)
+    d = np.sign(np.linalg.det(U @ Vt))
+    D = np.ones(M.shape[:-2] + (3,))
+    D[..., 2] = d
+    return (U * D[..., None, :]) @ Vt
+
+
+def wrap_deg(angle_deg):
+    """Wrap angles to (-180, 180] degrees."""
+    a = np.mod(np.asarray(angle_deg, float) + 180.0, 360.0) - 180.0
+    return np.where(a == -180.0, 180.0, a)
+
+
+def geodesic_deg(R_a, R_b) -> np.ndarray:
+    """Rotation angle of ``R_a^T R_b`` in degrees (the protocol's geodesic error)."""
+    R_a = np.asarray(R_a, float)
+    R_b = np.asarray(R_b, float)
+    tr = np.einsum("...ji,...ji->...", R_a, R_b)
+    # arccos loses half the digits near 0; the arctan2 form of the same angle does not.
+    rel = np.swapaxes(R_a, -1, -2) @ R_b
+    axis = np.stack(
+        [rel[..., 2, 1] - rel[..., 1, 2], rel[..., 0, 2] - rel[..., 2, 0],
+         rel[..., 1, 0] - rel[..., 0, 1]],
+        axis=-1,
+    )
+    return np.degrees(np.arctan2(0.5 * np.linalg.norm(axis, axis=-1), 0.5 * (tr - 1.0)))
+
+
+@dataclass(frozen=True)
+class Pose:
+    """A rigid transform ``x_<to> = R @ x_<from> + t`` with named frames.
+
+    Parameters
+    ----------
+    R : (3, 3) rotation matrix.
+    t_mm : (3,) translation in millimetres.
+    to_frame, from_frame : frame names; the default is the holder in the camera frame.
+    """
+
+    R: np.ndarray
+    t_mm: np.ndarray
+    to_frame: str = "cam"
+    from_frame: str = "holder"
+
+    def __post_init__(self):
+        R = np.asarray(self.R, float)
+        t = np.asarray(self.t_mm, float).reshape(-1)
+        if R.shape != (3, 3) or t.shape != (3,):
+            raise InputError(f"a pose needs R of shape (3, 3) and t of shape (3,), got "
+                             f"{R.shape} and {t.shape}")
+        if not (np.all(np.isfinite(R)) and np.all(np.isfinite(t))):
+            raise InputError("a pose must be finite (R or t holds NaN or inf)")
+        if abs(np.linalg.det(R) - 1.0) > 1e-6 or np.abs(R.T @ R - np.eye(3)).max() > 1e-6:
+            raise InputError("R is not a rotation matrix (R^T R != I or det R != 1)")
+        object.__setattr__(self, "R", R)
+        object.__setattr__(self, "t_mm", t)
+
+    @classmethod
+    def from_euler(cls, alpha_deg, beta_deg, gamma_deg, X_mm, Y_mm, Z_mm, **frames) -> Pose:
+        """Pose from the protocol's six DOFs."""
+        return cls(rotation_from_euler_deg(alpha_deg, beta_deg, gamma_deg),
+                   np.array([X_mm, Y_mm, Z_mm], float), **frames)
+
+    @classmethod
+    def nominal(cls) -> Pose:
+        """The protocol's nominal pose: ``R = I``, ``t = (0, 0, 600)`` mm."""
+        return cls(np.eye(3), NOMINAL_T_MM.copy())
+
+    @property
+    def euler_deg(self) -> np.ndarray:
+        """(alpha, beta, gamma) in degrees."""
+        return euler_deg_from_rotation(self.R)
+
+    @property
+    def dof(self) -> np.ndarray:
+        """The six DOFs (alpha, beta, gamma [deg], X, Y, Z [mm])."""
+        return np.concatenate([self.euler_deg, self.t_mm])
+
+    def apply(self, points_mm) -> np.ndarray:
+        """Transform ``(..., 3)`` points from ``from_frame`` into ``to_frame``."""
+        return np.asarray(points_mm, float) @ self.R.T + self.t_mm
+
+    def inverse(self) -> Pose:
+        return Pose(self.R.T, -self.R.T @ self.t_mm, self.from_frame, self.to_frame)
+
+    def __matmul__(self, other: Pose) -> Pose:
+        if not isinstance(other, Pose):
+            return NotImplemented
+        if self.from_frame != other.to_frame:
+            raise InputError(
+                f"cannot compose T_{self.to_frame}_{self.from_frame} with "
+                f"T_{other.to_frame}_{other.from_frame}: frames '{self.from_frame}' and "
+                f"'{other.to_frame}' differ")
+        return Pose(self.R @ other.R, self.R @ other.t_mm + self.t_mm,
+                    self.to_frame, other.from_frame)
+
+    def to_dict(self) -> dict:
+        a, b, g = self.euler_deg
+        return {
+            f"R_{self.to_frame}_{self.from_frame}": self.R.tolist(),
+            f"t_{self.to_frame}_{self.from_frame}_mm": self.t_mm.tolist(),
+            "alpha_deg": float(a), "beta_deg": float(b), "gamma_deg": float(g),
+            "X_mm": float(self.t_mm[0]), "Y_mm": float(self.t_mm[1]),
+            "Z_mm": float(self.t_mm[2]),
+        }
+
+
+@dataclass
+class PoseErrors:
+    """Protocol error figures of estimates against the truth, vectorised over trials.
+
+    Attributes
+    ----------
+    dof : (T, 6) estimate - truth per DOF: alpha, beta, gamma wrapped to (-180, 180] deg;
+        X, Y, Z in mm.
+    rot_deg : (T,) geodesic rotation error.
+    trans_mm : (T,) translation error norm.
+    failed : (T,) gross failure (rot > 2 deg or trans > 10 mm, or no estimate: NaN input).
+    """
+
+    dof: np.ndarray
+    rot_deg: np.ndarray
+    trans_mm: np.ndarray
+    failed: np.ndarray = field(default=None)
+
+
+def pose_errors(R_true, t_true_mm, R_est, t_est_mm) -> PoseErrors:
+    """Error figures of the protocol; inputs ``(T, 3, 3)``/``(T, 3)`` or single poses.
+
+    A NaN estimate (a method that gave nothing) yields NaN errors and ``failed = True``.
+    """
+    R_true = np.asarray(R_true, float).reshape(-1, 3, 3)
+    R_est = np.asarray(R_est, float).reshape(-1, 3, 3)
+    t_true = np.asarray(t_true_mm, float).reshape(-1, 3)
+    t_est = np.asarray(t_est_mm, float).reshape(-1, 3)
+    valid = np.all(np.isfinite(R_est), axis=(1, 2)) & np.all(np.isfinite(t_est), axis=1)
+    T = len(R_true)
+    dof = np.full((T, 6), np.nan)
+    rot = np.full(T, np.nan)
+    if valid.any():
+        e_true = euler_deg_from_rotation(R_true[valid])
+        e_est = euler_deg_from_rotation(R_est[valid])
+        dof[valid, :3] = wrap_deg(e_est - e_true)
+        rot[valid] = geodesic_deg(R_true[valid], R_est[valid])
+    dof[:, 3:] = t_est - t_true
+    trans = np.linalg.norm(t_est - t_true, axis=1)
+    with np.errstate(invalid="ignore"):
+        failed = ~valid | ~(rot <= FAIL_ROT_DEG) | ~(trans <= FAIL_TRANS_MM)
+    return PoseErrors(dof=dof, rot_deg=rot, trans_mm=trans, failed=failed)
