@@ -1,0 +1,1 @@
+"""Experiments of the seed paper: the synthetic sweep (Fig. 5) and the image table (Table 2)."""
