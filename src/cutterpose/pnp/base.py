@@ -166,6 +166,7 @@ def make_solver(method: str, candidates: Callable[[np.ndarray, np.ndarray], list
         m = camera.normalize_px(x)
         if not np.all(np.isfinite(m)):
             raise InputError("points_px lie outside the camera's valid distortion domain")
+        extra = {}
         try:
             cands = candidates(P, m)
         except np.linalg.LinAlgError as e:
@@ -173,7 +174,10 @@ def make_solver(method: str, candidates: Callable[[np.ndarray, np.ndarray], list
             reason = f"linear algebra failed: {e}"
         else:
             reason = ""
+        if isinstance(cands, tuple):  # optional form: (candidates, info dict for est.info)
+            cands, extra = cands
         est = select(method, cands, P, m, camera.focal_px)
+        est.info.update(extra)
         if reason and not est:
             est.reason = reason
         est.time_ms = (time.perf_counter() - t0) * 1e3
