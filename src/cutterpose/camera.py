@@ -267,6 +267,10 @@ class OpenCVCamera(Camera):
             raise CameraFileError(f"camera_matrix must be a finite 3x3 matrix, got {K.shape}")
         if K[0, 0] <= 0 or K[1, 1] <= 0:
             raise CameraFileError("camera_matrix: focal lengths fx, fy must be positive")
+        if K[0, 1] != 0 or np.any(K[2] != [0, 0, 1]) or np.any(K[1, :1] != 0):
+            # OpenCV's projection ignores a skew term: accepting one would silently disagree.
+            raise CameraFileError("camera_matrix: the OpenCV model has no skew; expected "
+                                  "[[fx, 0, cx], [0, fy, cy], [0, 0, 1]]")
         d = np.asarray(self.dist_coeffs, float).ravel()
         if d.size not in (4, 5, 8) or not np.all(np.isfinite(d)):
             raise CameraFileError(
@@ -507,7 +511,7 @@ def _write_opencv_yaml(cam: Camera, path: Path) -> None:
 
 
 def load_camera(path) -> Camera:
-    """Read a camera file: JSON (``.json``) or OpenCV FileStorage YAML (``.yml``/``.yaml``/``.xml``).
+    """Read a camera file: JSON (``.json``) or OpenCV YAML (``.yml``/``.yaml``/``.xml``).
 
     Raises
     ------

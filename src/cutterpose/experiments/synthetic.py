@@ -237,10 +237,12 @@ def crlb_std(trials: Trials, sigma_px: float | None = None) -> np.ndarray:
 # running methods over trials
 def _solve_chunk(args):
     """Worker: run methods on a chunk of trials. Returns per method (R, t, time_ms, reasons)."""
-    method_names, cam, P, holder, px, shift, reverse = args
+    method_specs, cam, P, holder, px, shift, reverse = args
     out = {}
-    for name in method_names:
-        meth = get_method(name)
+    for spec in method_specs:
+        # registered methods travel by name (their solvers may be closures, not picklable)
+        meth = get_method(spec) if isinstance(spec, str) else spec
+        name = meth.name
         T = len(px)
         R = np.full((T, 3, 3), np.nan)
         t = np.full((T, 3), np.nan)
@@ -273,6 +275,14 @@ def _solve_chunk(args):
     return out
 
 
+def _registered(name: str) -> bool:
+    try:
+        get_method(name)
+    except InputError:
+        return False
+    return True
+
+
 def run_trials(methods: list[Method], trials: Trials, workers: int = 1, progress=None,
                chunk: int = 25) -> dict[str, tuple]:
     """Solve every trial with every method. Returns ``{name: (R, t, time_ms, reasons)}``.
@@ -282,8 +292,9 @@ def run_trials(methods: list[Method], trials: Trials, workers: int = 1, progress
     """
     holder = holder_for_points(trials.points_holder_mm)
     names = [m.name for m in methods]
+    specs = [m.name if _registered(m.name) else m for m in methods]
     T = len(trials)
-    jobs = [(names, trials.camera, trials.points_holder_mm, holder, trials.points_px[i:i + chunk],
+    jobs = [(specs, trials.camera, trials.points_holder_mm, holder, trials.points_px[i:i + chunk],
              trials.shift[i:i + chunk], trials.reverse[i:i + chunk]) for i in range(0, T, chunk)]
     parts = []
     if workers > 1 and len(jobs) > 1:
