@@ -84,9 +84,99 @@ def list_methods():
 
 
 # ---- section: demo ------------------------------------------------------------------------
+@app.command("demo")
+@friendly
+def demo(out: str = typer.Option("results/demo", help="Output folder.")):
+    """The main job on the bundled default data: measure the example image and print the pose
+    (before the image pipeline exists: a short synthetic experiment)."""
+    try:
+        from .pipeline import demo as pipeline_demo
+    except ImportError:
+        pipeline_demo = None
+    if pipeline_demo is not None:
+        pipeline_demo(out)
+        return
+    from .experiments.synthetic import run_synthetic
+
+    res = run_synthetic(["opencv-ippe-lm", "opencv-sqpnp"], [0.5, 1.0, 2.0], 100, out,
+                        show_progress=True)
+    typer.echo((res.out_dir / "summary.md").read_text())
 
 
 # ---- section: measure, render, render-set, experiment images (issue 5) --------------------
+def _render_camera(spec: str | None):
+    """``table1`` / ``synthetic`` (bundled cameras) or a camera file; default Table 1."""
+    from .camera import default_camera, load_camera
+
+    if spec is None or spec in ("table1", "synthetic"):
+        return default_camera(spec or "table1")
+    return load_camera(spec)
+
+
+@app.command("render")
+@friendly
+def render_cmd(
+    out: str = typer.Option(..., "--out", help="Output image (.png)."),
+    pose: str = typer.Option("0,0,0,0,0,600", help="alpha,beta,gamma [deg],X,Y,Z [mm] of the "
+                             "holder in the camera frame."),
+    preset: str = typer.Option("easy", help="easy, dim, worn, occluded, blurred or hard."),
+    seed: int = typer.Option(0, help="Seed of textures, occluders and noise."),
+    camera: str = typer.Option(None, help="table1 (default), synthetic, or a camera file."),
+    holder: str = typer.Option(None, help="Holder JSON file (default: the bundled holder)."),
+    pocket_depth: float = typer.Option(None, help="Pocket depth in mm (preset: 80)."),
+    truth: bool = typer.Option(True, help="Also write <stem>.truth.json beside the image."),
+):
+    """Render one realistic image of the holder at a pose."""
+    from .errors import InputError
+    from .holder import load_holder
+    from .pose import Pose
+    from .render import preset as get_preset
+    from .render import render_holder, save_rendered
+
+    try:
+        dof = [float(x) for x in pose.split(",")]
+    except ValueError:
+        dof = []
+    if len(dof) != 6:
+        raise InputError(f"--pose needs six comma-separated numbers alpha,beta,gamma,X,Y,Z; "
+                         f"got {pose!r}")
+    cam = _render_camera(camera)
+    settings = get_preset(preset)
+    if pocket_depth is not None:
+        settings = settings.with_(pocket_depth_mm=pocket_depth)
+    r = render_holder(Pose.from_euler(*dof), cam, load_holder(holder) if holder else None,
+                      settings, seed=seed)
+    path = save_rendered(r, out, cam, truth=truth)
+    typer.echo(f"wrote {path}" + (f" and {path.with_suffix('.truth.json')}" if truth else ""))
+
+
+@app.command("render-set")
+@friendly
+def render_set_cmd(
+    out: str = typer.Option(..., "--out", help="Output folder (images and truth.json)."),
+    count: int = typer.Option(100, min=1, help="Number of images."),
+    seed: int = typer.Option(0, help="Seed of the poses, difficulties and images."),
+    camera: str = typer.Option(None, help="table1 (default), synthetic, or a camera file."),
+    preset: str = typer.Option(None, help="Use this preset for every image (default: a mix "
+                               "of easy, dim, worn, occluded, blurred, hard)."),
+):
+    """Render an image set with its truth.json (PROTOCOL.md, exchange formats)."""
+    from rich.progress import Progress
+
+    from .render import DEFAULT_MIX, render_set
+    from .render import preset as get_preset
+
+    mix = DEFAULT_MIX
+    if preset is not None:
+        get_preset(preset)
+        mix = ((preset, 1.0),)
+    cam = _render_camera(camera)
+    with Progress(transient=True, console=None) as bar:
+        task = bar.add_task("rendering", total=count)
+        path = render_set(count, seed, out, cam, mix=mix,
+                          progress=lambda i, n: bar.update(task, completed=i + 1))
+    typer.echo(f"wrote {count} images and {path}")
+
 
 
 # ---- section: calibrate, render-plate, camera convert (issue 6) ---------------------------

@@ -46,8 +46,14 @@ class Holder:
 
     @property
     def points_holder_mm(self) -> np.ndarray:
-        """(N, 3) corners in the holder frame (Z = 0)."""
-        return np.column_stack([self.corners_mm, np.zeros(len(self.corners_mm))])
+        """(N, 3) corners in the holder frame (Z = 0). Cached and read-only: it is on every
+        solve's path."""
+        P = self._cache.get("points")
+        if P is None:
+            P = np.column_stack([self.corners_mm, np.zeros(len(self.corners_mm))])
+            P.flags.writeable = False
+            self._cache["points"] = P
+        return P
 
     @property
     def area_mm2(self) -> float:

@@ -77,12 +77,28 @@ def check_correspondences(points_px, points_obj, min_points: int) -> tuple[np.nd
     if len(x) < min_points:
         raise DegenerateInputError(f"need at least {min_points} points, got {len(x)}")
     for arr, what in ((x, "image points"), (P, "object points")):
-        c = arr - arr.mean(axis=0)
-        s = np.linalg.svd(c, compute_uv=False)
-        if s[0] <= 0 or s[1] / s[0] < 1e-9:
+        if _collinear(arr):
             raise DegenerateInputError(f"all {what} are collinear (or coincide): the pose is not "
                                        "determined")
     return x, P
+
+
+def _collinear(a: np.ndarray, tol: float = 1e-9) -> bool:
+    """True when the points span at most a line: the second singular value of the centred set is
+    below ``tol`` times the first. Uses the covariance's invariants (sum of principal 2x2 minors
+    = sum of products of eigenvalue pairs) instead of an SVD: this sits on every solve's path."""
+    c = a - a.mean(axis=0)
+    C = c.T @ c
+    tr = np.trace(C)
+    if tr <= 0:
+        return True
+    if C.shape == (2, 2):
+        pairs = C[0, 0] * C[1, 1] - C[0, 1] ** 2
+    else:
+        pairs = (C[0, 0] * C[1, 1] - C[0, 1] ** 2 + C[0, 0] * C[2, 2] - C[0, 2] ** 2
+                 + C[1, 1] * C[2, 2] - C[1, 2] ** 2)
+    # pairs / tr^2 ~ (s2 / s1)^2 when s2 << s1
+    return bool(pairs <= (tol**2) * tr * tr)
 
 
 def is_planar(P: np.ndarray, tol: float = 1e-6) -> bool:
@@ -123,36 +139,41 @@ def reprojection_rms(R, t, P, m) -> float:
     return float(np.sqrt(np.mean(np.sum((proj - m) ** 2, axis=1))))
 
 
+def _det3(M: np.ndarray) -> np.ndarray:
+    """Determinants of (k, 3, 3) matrices (explicit: np.linalg.det costs more on tiny batches)."""
+    return (M[:, 0, 0] * (M[:, 1, 1] * M[:, 2, 2] - M[:, 1, 2] * M[:, 2, 1])
+            - M[:, 0, 1] * (M[:, 1, 0] * M[:, 2, 2] - M[:, 1, 2] * M[:, 2, 0])
+            + M[:, 0, 2] * (M[:, 1, 0] * M[:, 2, 1] - M[:, 1, 1] * M[:, 2, 0]))
+
+
 def select(method: str, cands: list[Candidate], P, m, f_px: float) -> PoseEstimate:
     """Pick the candidate with the least reprojection error; see the module docstring."""
-    scored = []
-    for R, t in cands:
-        R = np.asarray(R, float)
-        t = np.asarray(t, float).reshape(3)
-        if not (np.all(np.isfinite(R)) and np.all(np.isfinite(t))):
-            continue
-        if abs(np.linalg.det(R) - 1) > 1e-6:
-            continue
-        z = P @ R[2] + t[2]
-        if np.any(z <= 0):
-            continue
-        scored.append((reprojection_rms(R, t, P, m), R, t))
-    if not scored:
+    n_raw = len(cands)
+    if cands:
+        Rs = np.array([np.asarray(R, float).reshape(3, 3) for R, _ in cands])
+        ts = np.array([np.asarray(t, float).reshape(3) for _, t in cands])
+        finite = np.isfinite(Rs).all(axis=(1, 2)) & np.isfinite(ts).all(axis=1)
+        Rs, ts = Rs[finite], ts[finite]
+        X = P @ Rs.transpose(0, 2, 1) + ts[:, None, :]
+        ok = (np.abs(_det3(Rs) - 1.0) <= 1e-6) & np.all(X[..., 2] > 0, axis=1)
+        Rs, ts, X = Rs[ok], ts[ok], X[ok]
+    if not cands or len(Rs) == 0:
         reason = ("no candidate pose" if not cands
-                  else f"none of {len(cands)} candidates is finite with all points in front")
-        return PoseEstimate.failure(method, reason, info={"n_candidates": len(cands)})
-    scored.sort(key=lambda s: s[0])
-    best = scored[0]
+                  else f"none of {n_raw} candidates is finite with all points in front")
+        return PoseEstimate.failure(method, reason, info={"n_candidates": n_raw})
+    err = np.sqrt(np.mean(np.sum((X[..., :2] / X[..., 2:3] - m) ** 2, axis=2), axis=1))
+    order = np.argsort(err, kind="stable")
+    Rs, ts, err = Rs[order], ts[order], err[order]
     ratio = np.nan
     # a second candidate counts only when it is a different pose, not a duplicate
-    for e, R, t in scored[1:]:
-        if np.abs(R - best[1]).max() > 1e-6 or np.abs(t - best[2]).max() > 1e-6:
-            ratio = best[0] / e if e > 0 else 1.0
-            break
-    return PoseEstimate(method=method, R_cam_holder=best[1], t_cam_holder_mm=best[2],
-                        residual_px=best[0] * f_px, ambiguity_ratio=float(ratio),
-                        candidates=[(R, t) for _, R, t in scored],
-                        info={"n_candidates": len(cands)})
+    diff = np.maximum(np.abs(Rs - Rs[0]).max(axis=(1, 2)), np.abs(ts - ts[0]).max(axis=1))
+    other = np.flatnonzero(diff > 1e-6)
+    if other.size:
+        e2 = err[other[0]]
+        ratio = err[0] / e2 if e2 > 0 else 1.0
+    return PoseEstimate(method=method, R_cam_holder=Rs[0], t_cam_holder_mm=ts[0],
+                        residual_px=float(err[0] * f_px), ambiguity_ratio=float(ratio),
+                        candidates=list(zip(Rs, ts)), info={"n_candidates": n_raw})
 
 
 def make_solver(method: str, candidates: Callable[[np.ndarray, np.ndarray], list[Candidate]],

@@ -1,0 +1,118 @@
+"""Speed benchmark: median time per solve of every method, as a ratio to OpenCV's SQPnP measured
+in the same run, and the time of `measure` on a full 4112 x 3008 image, per stage.
+
+Runs on one core (BLAS and OpenCV threads pinned to 1), so the figures compare with the issues'
+single-core targets. Usage: ``make bench`` or ``python benchmarks/bench.py [--trials N]``.
+"""
+
+from __future__ import annotations
+
+import os
+
+for _v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ[_v] = "1"
+
+import argparse  # noqa: E402
+import resource  # noqa: E402
+import time  # noqa: E402
+
+import cv2  # noqa: E402
+import numpy as np  # noqa: E402
+
+cv2.setNumThreads(1)
+
+from cutterpose.experiments.synthetic import generate_trials  # noqa: E402
+from cutterpose.holder import default_holder  # noqa: E402
+from cutterpose.methods import get_method  # noqa: E402
+
+# method -> target median in microseconds (from the issues)
+TARGETS_US = {"dlt": 200, "epnp": 200, "rpnp": 200, "aspnp": 20_000, "opnp": 20_000,
+              "dm": 50_000, "dm+": 50_000}
+METHODS = ["opencv-sqpnp", "opencv-ippe-lm", "dlt", "epnp", "rpnp", "aspnp", "opnp",
+           "opnp+lm", "initial", "dm", "dm+"]
+
+
+def _median_us(fn, inputs, repeat=1):
+    times = []
+    for x in inputs:
+        for _ in range(repeat):
+            t0 = time.perf_counter()
+            fn(x)
+            times.append(time.perf_counter() - t0)
+    return 1e6 * float(np.median(times))
+
+
+def bench_solvers(n_trials: int) -> None:
+    tr = generate_trials(n_trials, 1.0, seed=11)
+    cam, holder = tr.camera, default_holder()
+    P = holder.points_holder_mm.reshape(-1, 1, 3)
+    ref_us = _median_us(
+        lambda x: cv2.solvePnP(P, x.reshape(-1, 1, 2), cam.K, None, flags=cv2.SOLVEPNP_SQPNP),
+        tr.points_px, repeat=3)
+    print(f"reference: cv2.solvePnP(SOLVEPNP_SQPNP), 20 points: median {ref_us:.1f} us\n")
+    print(f"{'method':16s} {'median us':>11s} {'x SQPnP':>9s} {'target us':>10s}  verdict")
+    for name in METHODS:
+        try:
+            m = get_method(name)
+        except Exception as e:  # noqa: BLE001
+            print(f"{name:16s} {'-':>11s} {'-':>9s} {'-':>10s}  not available ({e})")
+            continue
+        pts = tr.points_px
+        if not m.needs_correspondences:
+            # contour order with an arbitrary start, as the image pipeline delivers it
+            pts = np.roll(pts, 7, axis=1)
+
+        def fn(x, m=m):
+            return m.solve(x, cam, holder)
+
+        fn(pts[0])  # warm-up: imports, caches, stored templates
+        us = _median_us(fn, pts)
+        tgt = TARGETS_US.get(name)
+        verdict = "" if tgt is None else ("ok" if us < tgt else "SLOWER THAN TARGET")
+        print(f"{name:16s} {us:11.1f} {us / ref_us:9.1f} {tgt if tgt else '':>10} {verdict:>4s}")
+
+
+def bench_measure(repeats: int = 5) -> None:
+    try:
+        from cutterpose.pipeline import measure
+
+        from cutterpose.render import render_holder
+    except ImportError as e:
+        print(f"\nmeasure: not available ({e})")
+        return
+    from cutterpose.camera import default_camera
+    from cutterpose.pose import Pose
+
+    cam = default_camera("table1")
+    holder = default_holder()
+    img = render_holder(Pose.from_euler(3, -4, 2, 5, -8, 610), cam, holder, seed=1).image
+    measure(img, cam, holder)  # warm-up
+    totals, stages = [], {}
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        res = measure(img, cam, holder)
+        totals.append(1e3 * (time.perf_counter() - t0))
+        for k, v in (getattr(res, "timings_ms", None) or {}).items():
+            stages.setdefault(k, []).append(v)
+    med = float(np.median(totals))
+    verdict = "ok" if med < 300 else "SLOWER THAN TARGET"
+    print(f"\nmeasure on a {img.shape[1]} x {img.shape[0]} image: median {med:.1f} ms over "
+          f"{repeats} runs (target 300 ms): {verdict}")
+    for k, v in stages.items():
+        print(f"  {k:24s} {np.median(v):8.1f} ms")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__)
+    ap.add_argument("--trials", type=int, default=200)
+    ap.add_argument("--skip-measure", action="store_true")
+    a = ap.parse_args()
+    bench_solvers(a.trials)
+    if not a.skip_measure:
+        bench_measure()
+    peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    print(f"\npeak resident memory of this run: {peak_mb:.0f} MB")
+
+
+if __name__ == "__main__":
+    main()
