@@ -1,0 +1,605 @@
+"""Camera calibration from images of the circle plate (Zhang's method, division or OpenCV model).
+
+Pipeline:
+    1. :func:`detect_plate`: dark blobs (``cv2.SimpleBlobDetector`` tuned to the plate's circle
+       size) -> ``cv2.findCirclesGrid`` (symmetric grid) -> sub-pixel ellipse fit of every circle
+       on grey-level edge crossings -> point order fixed by the triangular corner mark and by the
+       sign of the image orientation (a symmetric grid alone is ambiguous under rotation).
+    2. :func:`zhang_init`: homography of every view, Zhang's closed form for ``K`` from the
+       constraints ``h1^T B h2 = 0``, ``h1^T B h1 = h2^T B h2`` with ``B = K^-T K^-1``, and
+       the plate poses ``[r1 r2 t] = K^-1 H / |K^-1 h1|``.
+    3. :func:`refine_division`: Levenberg-Marquardt (``scipy.optimize.least_squares``) of the
+       reprojection error over all intrinsics and all plate poses, with the block-sparse
+       Jacobian structure; parameter standard deviations from ``s^2 (J^T J)^-1``.
+       The OpenCV model goes through ``cv2.calibrateCameraExtended`` instead.
+    4. Perspective bias of circle centres (beyond the paper): the centre of a circle's image
+       ellipse is not the image of its centre. With the current estimate, the offset is
+       predicted per circle (:func:`cutterpose.plate.ellipse_center_bias_px`), subtracted from
+       the measured ellipse centres, and the calibration is repeated (2 rounds are enough).
+
+Convention:
+    Plate frame and point order: :mod:`cutterpose.plate`. Poses are ``x_cam = R @ x_plate + t``
+    in mm. Division model as :class:`cutterpose.camera.DivisionCamera` (HALCON
+    ``area_scan_division``): ``f`` [m], ``kappa`` [1/m^2], pixel pitch ``(sx, sy)`` [m], principal
+    point [px]. Only ``f / sx`` and ``f / sy`` are observable, so, as HALCON does, the pixel
+    height ``sy`` is fixed (the sensor's datasheet value) and ``f``, ``kappa``, ``sx``, ``cx``,
+    ``cy`` are estimated; ``sx`` absorbs a non-square pixel aspect (Table 1: sx != sy). Internally
+    the solver works in units of ``sy``: ``fy = f / sy`` [px], ``a = sx / sy``,
+    ``k = kappa sy^2`` [1/px^2].
+
+References:
+    Z. Zhang, "A flexible new technique for camera calibration", IEEE TPAMI 22(11), 2000.
+    MVTec HALCON reference, ``calibrate_cameras`` (area_scan_division; Sy fixed, Sx estimated).
+    J. Heikkila, "Geometric camera calibration using circular control points", IEEE TPAMI
+    22(10), 2000 (bias of ellipse centres).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from scipy.optimize import least_squares
+from scipy.sparse import lil_matrix
+from scipy.spatial.transform import Rotation
+
+from .camera import Camera, DivisionCamera, OpenCVCamera
+from .errors import DegenerateInputError, FeatureError, ImageError, InputError
+from .plate import CirclePlate, ellipse_center_bias_px
+from .pose import Pose
+
+__all__ = ["PlateDetection", "detect_plate", "zhang_init", "refine_division", "calibrate",
+           "calibrate_images", "CalibrationResult"]
+
+
+# ------------------------------------------------------------------------------------------
+# detection
+@dataclass
+class PlateDetection:
+    """Circle centres of one plate image, in plate point order.
+
+    Attributes
+    ----------
+    points_px : (rows*cols, 2) centres of the fitted image ellipses (observed pixels).
+    axes_px : (rows*cols, 2) full axes of the fitted ellipses.
+    mark_contrast : darkness contrast of the orientation mark against the other corners
+        (fraction of the plate's black-white contrast).
+    """
+
+    points_px: np.ndarray
+    axes_px: np.ndarray
+    mark_contrast: float
+
+
+def _blob_detector(image_shape, plate: CirclePlate, size_px: float | None = None):
+    """Dark-blob detector; with ``size_px`` (a typical circle diameter) tuned to that size."""
+    import cv2
+
+    h, w = image_shape
+    p = cv2.SimpleBlobDetector_Params()
+    p.filterByColor = True
+    p.blobColor = 0  # dark circles
+    p.minThreshold, p.maxThreshold, p.thresholdStep = 30, 230, 20
+    p.minRepeatability = 2
+    p.filterByArea = True
+    if size_px is None:
+        # largest circle: the whole grid spans the image; smallest: ~4 px across
+        s_max = max(w, h) / max(plate.rows - 1, plate.cols - 1)
+        d_max = s_max * plate.diameter_mm / plate.spacing_mm
+        p.minArea, p.maxArea = 12.0, float(max(np.pi / 4 * d_max**2, 50.0))
+        p.minDistBetweenBlobs = 3.0
+    else:
+        # perspective changes circle areas across one plate by far less than 5x
+        a = np.pi / 4 * size_px**2
+        p.minArea, p.maxArea = float(max(a / 5, 8.0)), float(a * 5)
+        # one blob per circle: the centres of one circle found at several thresholds merge
+        p.minDistBetweenBlobs = float(0.6 * size_px)
+    p.filterByCircularity = True
+    p.minCircularity = 0.7  # ellipses down to an axis ratio of ~0.4; rejects the triangle
+    p.filterByInertia = True
+    p.minInertiaRatio = 0.15
+    p.filterByConvexity = True
+    p.minConvexity = 0.85
+    return cv2.SimpleBlobDetector_create(p)
+
+
+def _grid_consistent(grid: np.ndarray) -> bool:
+    """Reject scrambled grids: along rows and columns the second differences of a projected
+    grid are small against the spacing (perspective and distortion bend it only slowly)."""
+    step = np.median(np.concatenate([np.linalg.norm(np.diff(grid, axis=0), axis=-1).ravel(),
+                                     np.linalg.norm(np.diff(grid, axis=1), axis=-1).ravel()]))
+    d2r = np.linalg.norm(grid[2:] - 2 * grid[1:-1] + grid[:-2], axis=-1)
+    d2c = np.linalg.norm(grid[:, 2:] - 2 * grid[:, 1:-1] + grid[:, :-2], axis=-1)
+    return bool(step > 0 and max(d2r.max(), d2c.max()) < 0.25 * step)
+
+
+def _find_grid(gray: np.ndarray, plate: CirclePlate) -> np.ndarray | None:
+    """Rough grid points (rows, cols, 2) in the order cv2.findCirclesGrid returns them."""
+    import cv2
+
+    h, w = gray.shape
+    # the grid finder only needs rough centres: work on at most ~1600 px wide images
+    scale = min(1.0, 1600.0 / max(h, w))
+    small = gray if scale == 1.0 else cv2.resize(gray, (round(w * scale), round(h * scale)),
+                                                 interpolation=cv2.INTER_AREA)
+    kp = _blob_detector(small.shape, plate).detect(small)
+    if len(kp) < plate.n_points:
+        return None
+    # circles dominate the blobs: their median size tunes the second detector
+    size = float(np.median(sorted(k.size for k in kp)[-plate.n_points:]))
+    det = _blob_detector(small.shape, plate, size)
+    pattern = (plate.cols, plate.rows)
+    for flags in (cv2.CALIB_CB_SYMMETRIC_GRID,
+                  cv2.CALIB_CB_SYMMETRIC_GRID | cv2.CALIB_CB_CLUSTERING):
+        try:
+            found, centres = cv2.findCirclesGrid(small, pattern, flags=flags, blobDetector=det)
+        except cv2.error:
+            found, centres = False, None
+        if found and centres is not None and len(centres) == plate.n_points:
+            pts = centres.reshape(plate.rows, plate.cols, 2).astype(float)
+            if _grid_consistent(pts):
+                return (pts + 0.5) / scale - 0.5  # pixel-centre convention under resizing
+    return None
+
+
+def _edge_points(roi: np.ndarray, thr: float, mask: np.ndarray) -> np.ndarray:
+    """Sub-pixel crossings of the level ``thr`` between 4-neighbours touching ``mask``."""
+    a = roi.astype(float)
+    pts = []
+    # horizontal pairs
+    l, r = a[:, :-1], a[:, 1:]
+    m = ((l - thr) * (r - thr) < 0) & (mask[:, :-1] | mask[:, 1:])
+    v, u = np.nonzero(m)
+    pts.append(np.stack([u + (thr - l[m]) / (r[m] - l[m]), v.astype(float)], 1))
+    # vertical pairs
+    t, b = a[:-1, :], a[1:, :]
+    m = ((t - thr) * (b - thr) < 0) & (mask[:-1, :] | mask[1:, :])
+    v, u = np.nonzero(m)
+    pts.append(np.stack([u.astype(float), v + (thr - t[m]) / (b[m] - t[m])], 1))
+    return np.concatenate(pts)
+
+
+def _refine_centres(gray: np.ndarray, grid: np.ndarray):
+    """Ellipse fit on sub-pixel edge crossings around every rough centre."""
+    import cv2
+
+    rows, cols, _ = grid.shape
+    h, w = gray.shape
+    # the farthest row/column neighbour sets each window's half size: under strong
+    # perspective a circle may be longer than the nearest spacing; other circles in the window
+    # are separate components and are ignored
+    d = np.zeros((rows, cols))
+    dr = np.linalg.norm(np.diff(grid, axis=0), axis=-1)
+    dc = np.linalg.norm(np.diff(grid, axis=1), axis=-1)
+    d[:-1] = np.maximum(d[:-1], dr)
+    d[1:] = np.maximum(d[1:], dr)
+    d[:, :-1] = np.maximum(d[:, :-1], dc)
+    d[:, 1:] = np.maximum(d[:, 1:], dc)
+    centres = np.full((rows * cols, 2), np.nan)
+    axes = np.full((rows * cols, 2), np.nan)
+    for k, (c, dn) in enumerate(zip(grid.reshape(-1, 2), d.ravel())):
+        half = max(int(np.ceil(0.5 * dn)), 4)
+        u0, v0 = int(round(c[0])) - half, int(round(c[1])) - half
+        u1, v1 = u0 + 2 * half + 1, v0 + 2 * half + 1
+        if u0 < 0 or v0 < 0 or u1 > w or v1 > h:
+            raise FeatureError(f"circle {k} is cut by the image border")
+        roi = gray[v0:v1, u0:u1].astype(float)
+        lo, hi = np.percentile(roi, [2, 98])
+        if hi - lo < 10:
+            raise FeatureError(f"circle {k} has no contrast (blurred or saturated?)")
+        thr = 0.5 * (lo + hi)
+        dark = (roi < thr).astype(np.uint8)
+        n, lab = cv2.connectedComponents(dark, connectivity=8)
+        cu, cv_ = c[0] - u0, c[1] - v0
+        # the dark component nearest to the rough centre
+        ys, xs = np.nonzero(dark)
+        if len(xs) == 0:
+            raise FeatureError(f"circle {k} not found in its window")
+        j = np.argmin((xs - cu) ** 2 + (ys - cv_) ** 2)
+        blob = lab == lab[ys[j], xs[j]]
+        if blob[0].any() or blob[-1].any() or blob[:, 0].any() or blob[:, -1].any():
+            raise FeatureError(f"circle {k} touches another dark shape (occluded or merged)")
+        edge = _edge_points(roi, thr, blob)
+        if len(edge) < 8:
+            raise FeatureError(f"circle {k}: too few edge points ({len(edge)})")
+        mean = edge.mean(axis=0)
+        (eu, ev), (a1, a2), _ = cv2.fitEllipse((edge - mean).astype(np.float32))
+        centres[k] = (eu + mean[0] + u0, ev + mean[1] + v0)
+        axes[k] = (a1, a2)
+    return centres, axes
+
+
+def _sample(gray: np.ndarray, pts: np.ndarray) -> np.ndarray:
+    """Bilinear grey values at (n, 2) points (NaN outside)."""
+    import cv2
+
+    m = cv2.remap(gray.astype(np.float32), pts[:, :1].astype(np.float32)[None],
+                  pts[:, 1:].astype(np.float32)[None], cv2.INTER_LINEAR,
+                  borderMode=cv2.BORDER_CONSTANT, borderValue=np.nan)
+    return m.ravel()
+
+
+def _order_by_mark(gray: np.ndarray, grid: np.ndarray, plate: CirclePlate):
+    """Rotate/mirror the detected grid so that point 0 sits next to the mark and x, y are
+    right-handed (see the plate's Convention). Returns the reordered grid and the contrast."""
+    import cv2
+
+    rows, cols, _ = grid.shape
+    s = plate.spacing_mm
+    # probe positions in grid-index units (j, i) at each corner, from that corner's 3x3 block
+    probe_mm = plate.mark_probe_mm()[0]
+    a = -(probe_mm[0] / s + 0.5 * (cols - 1))  # outward offset in grid steps (> 0)
+    corners = [(0, 0, -1, -1), (0, cols - 1, -1, 1), (rows - 1, cols - 1, 1, 1),
+               (rows - 1, 0, 1, -1)]
+    offsets = np.array([[0.0, 0.0], [0.04, 0.0], [-0.04, 0.0], [0.0, 0.04], [0.0, -0.04]])
+    vals = []
+    for i, j, si, sj in corners:
+        ii, jj = i - si * np.arange(3), j - sj * np.arange(3)  # the corner's 3x3 block
+        I, J = np.meshgrid(ii, jj, indexing="ij")
+        src = np.stack([J.ravel(), I.ravel()], 1).astype(np.float32)
+        dst = grid[I.ravel(), J.ravel()].astype(np.float32)
+        H, _ = cv2.findHomography(src, dst, 0)
+        if H is None:
+            raise FeatureError("grid corner block is degenerate")
+        q = np.array([j + sj * a, i + si * a]) + offsets
+        qh = np.c_[q, np.ones(len(q))] @ H.T
+        vals.append(np.nanmean(_sample(gray, qh[:, :2] / qh[:, 2:])))
+    vals = np.array(vals)
+    # plate black/white levels: circle centres and the midpoints between circles
+    black = np.median(_sample(gray, grid.reshape(-1, 2)))
+    mid = 0.5 * (grid[1:, 1:] + grid[:-1, :-1]).reshape(-1, 2)
+    white = np.median(_sample(gray, mid))
+    if not np.all(np.isfinite(vals)):
+        raise FeatureError("orientation mark outside the image")
+    order = np.argsort(vals)
+    contrast = float((vals[order[1]] - vals[order[0]]) / max(white - black, 1e-9))
+    if white - black < 10 or contrast < 0.35:
+        raise FeatureError(f"orientation mark not found (contrast {contrast:.2f})")
+    c = int(order[0])
+    # bring corner c to index (0, 0): corners are listed clockwise in index space
+    g = grid
+    for cand in _symmetries(g):
+        if cand.shape[:2] != (plate.rows, plate.cols):
+            continue
+        i, j, _, _ = corners[c]
+        if not np.allclose(cand[0, 0], grid[i, j]):
+            continue
+        ex, ey = cand[0, 1] - cand[0, 0], cand[1, 0] - cand[0, 0]
+        if ex[0] * ey[1] - ex[1] * ey[0] > 0:
+            return cand, contrast
+    raise FeatureError("grid order is mirrored: the image shows the plate's back")
+
+
+def _symmetries(g: np.ndarray):
+    for k in range(4):
+        r = np.rot90(g, k, axes=(0, 1))
+        yield r
+        yield r.transpose(1, 0, 2)
+
+
+def detect_plate(image: np.ndarray, plate: CirclePlate) -> PlateDetection:
+    """Find and order the plate's circle centres in one grey image.
+
+    Raises
+    ------
+    FeatureError
+        Grid not found (wrong grid size, occlusion, strong blur), a circle cut or merged, or
+        the orientation mark not found; the message says which.
+    """
+    gray = np.asarray(image)
+    if gray.ndim == 3:
+        import cv2
+
+        gray = cv2.cvtColor(gray, cv2.COLOR_BGR2GRAY)
+    if gray.ndim != 2 or gray.size == 0:
+        raise ImageError(f"expected a grey image, got shape {gray.shape}")
+    if gray.dtype != np.uint8:
+        gray = np.clip(gray, 0, 255).astype(np.uint8)
+    grid = _find_grid(gray, plate)
+    if grid is None:
+        raise FeatureError(f"{plate.rows}x{plate.cols} circle grid not found")
+    grid, contrast = _order_by_mark(gray, grid, plate)
+    centres, axes = _refine_centres(gray, grid)
+    return PlateDetection(centres, axes, contrast)
+
+
+# ------------------------------------------------------------------------------------------
+# Zhang's closed form
+def _v(H: np.ndarray, i: int, j: int) -> np.ndarray:
+    h = H.T  # rows are the columns h1, h2, h3
+    return np.array([h[i, 0] * h[j, 0], h[i, 0] * h[j, 1] + h[i, 1] * h[j, 0],
+                     h[i, 1] * h[j, 1], h[i, 2] * h[j, 0] + h[i, 0] * h[j, 2],
+                     h[i, 2] * h[j, 1] + h[i, 1] * h[j, 2], h[i, 2] * h[j, 2]])
+
+
+def zhang_init(plate_xy_mm: np.ndarray, points_px: np.ndarray):
+    """Zhang's closed-form intrinsics and plate poses from >= 3 views (no distortion).
+
+    With ``H = lambda K [r1 r2 t]`` per view and ``B = K^-T K^-1`` (symmetric, 6 unknowns
+    ``b = (B11, B12, B22, B13, B23, B33)``), the orthonormality of ``r1, r2`` gives
+    ``v12^T b = 0`` and ``(v11 - v22)^T b = 0`` with
+    ``vij = (hi1 hj1, hi1 hj2 + hi2 hj1, hi2 hj2, hi3 hj1 + hi1 hj3, hi3 hj2 + hi2 hj3, hi3 hj3)``;
+    ``b`` is the null vector of the stacked ``V`` (SVD), and K follows in closed form
+    (Zhang 2000, appendix B). Skew is dropped (modern sensors have none).
+
+    Parameters
+    ----------
+    plate_xy_mm : (N, 2) plate points.
+    points_px : (M, N, 2) image points of M views (pixel coordinates).
+
+    Returns
+    -------
+    K : (3, 3); R : (M, 3, 3); t_mm : (M, 3).
+    """
+    import cv2
+
+    M = len(points_px)
+    if M < 3:
+        raise DegenerateInputError(f"Zhang's method needs at least 3 views, got {M}")
+    # condition the pixels (Hartley) so that V is well scaled
+    T = np.diag([1e-3, 1e-3, 1.0])
+    Hs = []
+    for p in points_px:
+        H, _ = cv2.findHomography(plate_xy_mm.astype(np.float64), p.astype(np.float64), 0)
+        if H is None:
+            raise DegenerateInputError("plate homography failed (collinear points?)")
+        Hs.append(T @ H)
+    V = np.concatenate([np.stack([_v(H, 0, 1), _v(H, 0, 0) - _v(H, 1, 1)]) for H in Hs])
+    b = np.linalg.svd(V)[2][-1]
+    B11, B12, B22, B13, B23, B33 = b
+    v0 = (B12 * B13 - B11 * B23) / (B11 * B22 - B12**2)
+    lam = B33 - (B13**2 + v0 * (B12 * B13 - B11 * B23)) / B11
+    if lam / B11 <= 0 or lam * B11 / (B11 * B22 - B12**2) <= 0:
+        raise DegenerateInputError("Zhang's closed form failed: the views are too similar "
+                                   "(tilt the plate more, in different directions)")
+    alpha = np.sqrt(lam / B11)
+    beta = np.sqrt(lam * B11 / (B11 * B22 - B12**2))
+    u0 = -B13 * alpha**2 / lam  # skew term dropped
+    Kc = np.array([[alpha, 0.0, u0], [0.0, beta, v0], [0.0, 0.0, 1.0]])
+    K = np.linalg.inv(T) @ Kc
+    R, t = _poses_from_homographies(K, [np.linalg.inv(T) @ H for H in Hs])
+    return K, R, t
+
+
+def _poses_from_homographies(K, Hs):
+    Kinv = np.linalg.inv(K)
+    Rs, ts = [], []
+    for H in Hs:
+        A = Kinv @ H
+        lam = 1.0 / np.linalg.norm(A[:, 0])
+        if A[2, 2] * lam < 0:  # plate in front of the camera: t_z > 0
+            lam = -lam
+        r1, r2, t = lam * A[:, 0], lam * A[:, 1], lam * A[:, 2]
+        from .pose import nearest_rotation
+
+        Rs.append(nearest_rotation(np.stack([r1, r2, np.cross(r1, r2)], axis=1)))
+        ts.append(t)
+    return np.array(Rs), np.array(ts)
+
+
+# ------------------------------------------------------------------------------------------
+# division model refinement
+def _project_division(q: np.ndarray, rvec: np.ndarray, t: np.ndarray, X: np.ndarray):
+    """Observed pixels (M, N, 2) of plate points X (N, 3) for intrinsics
+    ``q = (fy, a, k, cx, cy)`` (units of sy, see the module Convention) and poses (M, 3)."""
+    fy, a, k, cx, cy = q
+    R = Rotation.from_rotvec(rvec).as_matrix()  # (M, 3, 3)
+    P = np.einsum("mij,nj->mni", R, X) + t[:, None, :]
+    Xs = fy * P[..., 0] / P[..., 2]
+    Ys = fy * P[..., 1] / P[..., 2]
+    disc = np.maximum(1.0 - 4.0 * k * (Xs * Xs + Ys * Ys), 1e-12)
+    s = 2.0 / (1.0 + np.sqrt(disc))
+    return np.stack([Xs * s / a + cx, Ys * s + cy], axis=-1)
+
+
+@dataclass
+class RefineResult:
+    camera: Camera
+    poses: list[Pose]
+    residuals_px: np.ndarray  # (M, N, 2)
+    std: dict
+    nfev: int = 0
+
+
+def refine_division(plate_pts_mm: np.ndarray, points_px: np.ndarray, image_size_px,
+                    pixel_height_m: float, K0: np.ndarray, R0: np.ndarray, t0: np.ndarray,
+                    kappa0_per_m2: float = 0.0) -> RefineResult:
+    """Levenberg-Marquardt over (f, kappa, sx, cx, cy) and all plate poses.
+
+    Residuals are observed minus projected pixels of every circle in every view; the Jacobian
+    is block sparse (a view's residuals depend on the 5 intrinsics and its own 6 pose
+    parameters), which ``least_squares`` exploits through ``jac_sparsity``. Parameter
+    covariance ``s^2 (J^T J)^-1`` with ``s^2 = |r|^2 / (m - n)``.
+    """
+    M, N, _ = points_px.shape
+    sy = float(pixel_height_m)
+    q0 = np.array([K0[1, 1], K0[1, 1] / K0[0, 0], kappa0_per_m2 * sy * sy, K0[0, 2], K0[1, 2]])
+    rv0 = Rotation.from_matrix(R0).as_rotvec()
+    x0 = np.concatenate([q0, np.concatenate([rv0, t0], axis=1).ravel()])
+    obs = np.asarray(points_px, float)
+
+    def fun(x):
+        pose = x[5:].reshape(M, 6)
+        return (_project_division(x[:5], pose[:, :3], pose[:, 3:], plate_pts_mm) - obs).ravel()
+
+    S = lil_matrix((M * N * 2, 5 + 6 * M), dtype=int)
+    S[:, :5] = 1
+    for m in range(M):
+        S[m * N * 2:(m + 1) * N * 2, 5 + 6 * m:11 + 6 * m] = 1
+    res = least_squares(fun, x0, jac_sparsity=S, method="trf", x_scale="jac",
+                        xtol=1e-10, ftol=1e-10, gtol=1e-10, max_nfev=100)
+    J = res.jac.toarray() if hasattr(res.jac, "toarray") else np.asarray(res.jac)
+    dof = max(len(res.fun) - len(res.x), 1)
+    s2 = 2.0 * res.cost / dof
+    try:
+        cov = s2 * np.linalg.inv(J.T @ J)
+        sd = np.sqrt(np.clip(np.diag(cov)[:5], 0, None))
+    except np.linalg.LinAlgError:
+        sd = np.full(5, np.nan)
+    fy, a, k, cx, cy = res.x[:5]
+    cam = DivisionCamera(focal_length_m=fy * sy, kappa_per_m2=k / sy**2,
+                         pixel_size_m=(a * sy, sy), principal_point_px=(cx, cy),
+                         image_size_px=tuple(image_size_px), name="calibrated (division model)")
+    std = {"focal_length_m": sd[0] * sy, "kappa_per_m2": sd[2] / sy**2,
+           "pixel_size_x_m": sd[1] * sy, "cx_px": sd[3], "cy_px": sd[4]}
+    pose = res.x[5:].reshape(M, 6)
+    Rs = Rotation.from_rotvec(pose[:, :3]).as_matrix()
+    poses = [Pose(R, t, "cam", "plate") for R, t in zip(Rs, pose[:, 3:])]
+    return RefineResult(cam, poses, res.fun.reshape(M, N, 2), std, res.nfev + res.njev)
+
+
+def _calibrate_opencv(plate_pts_mm, points_px, image_size_px) -> RefineResult:
+    import cv2
+
+    M, N, _ = points_px.shape
+    obj = [plate_pts_mm.astype(np.float32)] * M
+    img = [p.reshape(-1, 1, 2).astype(np.float32) for p in points_px]
+    crit = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 200, 1e-12)
+    out = cv2.calibrateCameraExtended(obj, img, tuple(int(v) for v in image_size_px), None, None,
+                                      criteria=crit)
+    _, K, dist, rvecs, tvecs, sd_intr = out[:6]
+    cam = OpenCVCamera(K, np.asarray(dist).ravel()[:5], tuple(image_size_px),
+                       name="calibrated (opencv model)")
+    poses = [Pose(Rotation.from_rotvec(np.ravel(r)).as_matrix(), np.ravel(t), "cam", "plate")
+             for r, t in zip(rvecs, tvecs)]
+    proj = np.stack([cam.project(p.apply(plate_pts_mm)) for p in poses])
+    sd = np.ravel(sd_intr)
+    names = ["fx_px", "fy_px", "cx_px", "cy_px", "k1", "k2", "p1", "p2", "k3"]
+    std = {n: float(v) for n, v in zip(names, sd)}
+    return RefineResult(cam, poses, proj - points_px, std)
+
+
+# ------------------------------------------------------------------------------------------
+@dataclass
+class CalibrationResult:
+    """Calibrated camera with its error figures.
+
+    Attributes
+    ----------
+    camera : the calibrated camera.
+    rms_px : RMS reprojection error over all circles of all used images
+        (``sqrt(mean |r|^2)`` over points, as ``cv2.calibrateCamera``).
+    per_image_rms_px : RMS per used image, in the order of ``used``.
+    std : standard deviation of each intrinsic parameter (keys name the parameter and unit).
+    poses : plate poses of the used images.
+    used : names of the images used; skipped : name -> reason of the images left out.
+    uncorrected : the same figures before the ellipse-centre bias correction (or None).
+    """
+
+    camera: Camera
+    rms_px: float
+    per_image_rms_px: list
+    std: dict
+    poses: list
+    used: list
+    skipped: dict = field(default_factory=dict)
+    uncorrected: dict | None = None
+
+    def to_dict(self) -> dict:
+        return {"camera": self.camera.to_dict(), "rms_px": self.rms_px,
+                "per_image_rms_px": dict(zip(self.used, self.per_image_rms_px)),
+                "std": self.std, "skipped": self.skipped,
+                "plate_poses": {n: p.to_dict() for n, p in zip(self.used, self.poses)},
+                "uncorrected": self.uncorrected}
+
+
+def _rms(res: np.ndarray) -> tuple[float, list]:
+    sq = np.sum(res**2, axis=-1)
+    return float(np.sqrt(sq.mean())), [float(v) for v in np.sqrt(sq.mean(axis=1))]
+
+
+def calibrate(points_px: np.ndarray, plate: CirclePlate, image_size_px, *,
+              model: str = "division", pixel_height_m: float = 3.45e-6,
+              bias_rounds: int = 2, names: list | None = None) -> CalibrationResult:
+    """Calibrate from ordered circle centres of M >= 3 views.
+
+    Parameters
+    ----------
+    points_px : (M, rows*cols, 2) measured ellipse centres.
+    model : ``"division"`` (our least squares) or ``"opencv"`` (``cv2.calibrateCamera``,
+        k1, k2, p1, p2, k3).
+    pixel_height_m : the fixed pixel height ``sy`` of the division model (only sets the metric
+        unit of f and kappa; the projection does not depend on it).
+    bias_rounds : rounds of ellipse-centre bias correction (0 = plain ellipse centres).
+    """
+    pts = np.asarray(points_px, float)
+    if pts.ndim != 3 or pts.shape[1:] != (plate.n_points, 2):
+        raise InputError(f"points_px must be (M, {plate.n_points}, 2), got {pts.shape}")
+    M = len(pts)
+    if M < 3:
+        raise DegenerateInputError(f"calibration needs at least 3 usable plate images, got {M}")
+    if model not in ("division", "opencv"):
+        raise InputError(f"model must be 'division' or 'opencv', got {model!r}")
+    names = list(names) if names is not None else [f"view{m}" for m in range(M)]
+    X = plate.points_mm
+
+    def solve(obs, warm: RefineResult | None):
+        if model == "opencv":
+            return _calibrate_opencv(X, obs, image_size_px)
+        if warm is None:
+            K, R, t = zhang_init(X[:, :2], obs)
+            return refine_division(X, obs, image_size_px, pixel_height_m, K, R, t)
+        R = np.array([p.R for p in warm.poses])
+        t = np.array([p.t_mm for p in warm.poses])
+        return refine_division(X, obs, image_size_px, pixel_height_m, warm.camera.K, R, t,
+                               warm.camera.kappa_per_m2)
+
+    first = solve(pts, None)
+    result = first
+    for _ in range(bias_rounds):
+        bias = np.stack([ellipse_center_bias_px(result.camera, p, plate) for p in result.poses])
+        obs = pts - np.nan_to_num(bias)
+        result = solve(obs, result)
+    rms, per = _rms(result.residuals_px)
+    unc = None
+    if bias_rounds > 0:
+        rms0, per0 = _rms(first.residuals_px)
+        unc = {"camera": first.camera.to_dict(), "rms_px": rms0, "std": first.std}
+    return CalibrationResult(result.camera, rms, per, result.std, result.poses, names,
+                             uncorrected=unc)
+
+
+def calibrate_images(paths, plate: CirclePlate, *, model: str = "division",
+                     pixel_height_m: float = 3.45e-6, bias_rounds: int = 2,
+                     progress=None) -> CalibrationResult:
+    """Detect the plate in every image file and calibrate; unusable images are skipped.
+
+    Raises
+    ------
+    DegenerateInputError
+        Fewer than 3 images with a detected plate; the message lists every skipped image with
+        its reason.
+    """
+    import cv2
+
+    points, used, skipped = [], [], {}
+    size = None
+    for p in paths:
+        p = Path(p)
+        name = p.name
+        img = cv2.imread(str(p), cv2.IMREAD_GRAYSCALE) if p.is_file() else None
+        if img is None:
+            skipped[name] = "not a readable image"
+        elif size is not None and (img.shape[1], img.shape[0]) != size:
+            skipped[name] = (f"image size {img.shape[1]}x{img.shape[0]} differs from "
+                             f"{size[0]}x{size[1]}")
+        else:
+            try:
+                det = detect_plate(img, plate)
+                points.append(det.points_px)
+                used.append(name)
+                size = (img.shape[1], img.shape[0])
+            except FeatureError as e:
+                skipped[name] = str(e)
+        if progress is not None:
+            progress(name, skipped.get(name))
+    if len(used) < 3:
+        listing = "; ".join(f"{k}: {v}" for k, v in skipped.items()) or "none"
+        raise DegenerateInputError(
+            f"calibration needs at least 3 images with a detected plate, got {len(used)} "
+            f"(skipped: {listing})")
+    res = calibrate(np.stack(points), plate, size, model=model, pixel_height_m=pixel_height_m,
+                    bias_rounds=bias_rounds, names=used)
+    res.skipped = skipped
+    return res
