@@ -48,25 +48,29 @@ Deviations from the reference code (notes sections 2 and 8):
     * Planarity detected, any plane; the planar case uses 3 control points in the plane.
     * Hypotheses ``N = 1..3`` (planar) / ``1..4`` (general) are all built and all refined,
       without the reference's error gates (5/800 or 20 in normalised units).
-    * Gauss-Newton on the planar betas too (notes 2.3), 6 iterations, from every hypothesis.
+    * Gauss-Newton on the planar betas too (notes 2.3), 5 iterations, from every hypothesis.
     * Alignment AL-ok, never ``R -> -R`` (AL-E is wrong on planar points).
     * Sign by orientation (general) / depth (planar), not "negate all if any depth < 0".
     * Candidates are returned for selection by RMS reprojection error (not ``E_mean``); after
-      refinement the hypotheses usually converge to one pose, and near-duplicates (rotations
-      within 0.5 deg) are merged so that the ambiguity ratio compares genuinely different poses.
+      refinement the hypotheses usually converge to the same betas; duplicates are merged and
+      only the best two distinct hypotheses (by reprojection error of the camera-frame points
+      ``X_i``) are returned: the selection and the ambiguity ratio need no more, and every
+      alignment costs time.
 """
 
 from __future__ import annotations
 
+from functools import cache
+
 import numpy as np
 
 from ..errors import DegenerateInputError
-from .base import Candidate, align_rigid, is_planar, make_solver, reprojection_rms
+from .base import Candidate, align_rigid, is_planar, make_solver
 
 __all__ = ["candidates", "solve"]
 
-_GN_ITERATIONS = 6
-_MERGE_DEG = 0.5
+_GN_ITERATIONS = 5
+_SAME_BETA = 1e-6  # relative: GN from two hypotheses reached the same solution
 # fixed generic coefficients of the linear forms in the multiplication matrix (notes 6.4)
 _G = np.array([1.0, 0.37, -0.61, 0.23])
 _H = np.array([0.29, -0.83, 0.47, 1.0])
@@ -106,32 +110,43 @@ def _beta_from_products(Bmat: np.ndarray) -> np.ndarray:
     return V[:, -1] * np.sqrt(max(w[-1], 0.0))
 
 
-def _sym_from_upper(b: np.ndarray, N: int) -> np.ndarray:
+@cache
+def _tri(N: int):
+    """Upper-triangle indices of an N x N symmetric matrix, the position of every (i, j) in the
+    packed vector of products (i <= j), and the weights 1 (diagonal) / 2 (off-diagonal)."""
     iu = np.triu_indices(N)
-    S = np.zeros((N, N))
-    S[iu] = b
-    return S + np.triu(S, 1).T
+    pos = np.zeros((N, N), dtype=int)
+    pos[iu] = np.arange(len(iu[0]))
+    pos = np.maximum(pos, pos.T)
+    return iu, pos, np.where(iu[0] == iu[1], 1.0, 2.0)
+
+
+def _sym_from_upper(b: np.ndarray, N: int) -> np.ndarray:
+    return b[_tri(N)[1]]
+
+
+@cache
+def _minor_index(N: int):
+    """Packed positions ``(ik, jl, il, jk)`` of the 2x2 minors ``B_ik B_jl - B_il B_jk`` of a
+    symmetric N x N matrix, one per unordered pair of index pairs."""
+    pos = _tri(N)[1]
+    pairs = [(i, j) for i in range(N) for j in range(i + 1, N)]
+    rows = [(pos[i, k], pos[j, l], pos[i, l], pos[j, k])
+            for a, (i, j) in enumerate(pairs) for k, l in pairs[a:]]
+    return tuple(np.array(c) for c in zip(*rows, strict=True))
 
 
 def _minor_rows(Z: np.ndarray, N: int) -> np.ndarray:
     """Rows of the linearised rank-one conditions on ``B(lambda) = sym(Z lambda)``.
 
-    Every 2x2 minor ``B_ik B_jl - B_il B_jk`` is a quadratic form in ``lambda``; the result
-    holds its coefficients on the products ``lambda_a lambda_b`` (a <= b).
+    Every 2x2 minor ``B_ik B_jl - B_il B_jk`` is a quadratic form ``lambda^T Q lambda``; the
+    result holds its coefficients on the packed products ``lambda_a lambda_b`` (a <= b).
     """
-    r = Z.shape[1]
-    idx = np.zeros((N, N), dtype=int)
-    idx[np.triu_indices(N)] = np.arange(N * (N + 1) // 2)
-    idx = np.maximum(idx, idx.T)
-    pairs = [(i, j) for i in range(N) for j in range(i + 1, N)]
-    rows = []
-    for a, (i, j) in enumerate(pairs):
-        for k, l in pairs[a:]:
-            Q = (np.outer(Z[idx[i, k]], Z[idx[j, l]]) - np.outer(Z[idx[i, l]], Z[idx[j, k]]))
-            Q = Q + Q.T
-            iu = np.triu_indices(r)
-            rows.append(np.where(iu[0] == iu[1], 0.5, 1.0) * Q[iu])
-    return np.array(rows)
+    ik, jl, il, jk = _minor_index(N)
+    Q = Z[ik][:, :, None] * Z[jl][:, None, :] - Z[il][:, :, None] * Z[jk][:, None, :]
+    iu, _, w = _tri(Z.shape[1])
+    # coefficient of lambda_a lambda_b: Q_ab + Q_ba (a < b), Q_aa (a = b)
+    return 0.5 * w * (Q[:, iu[0], iu[1]] + Q[:, iu[1], iu[0]])
 
 
 def _relinearise(L: np.ndarray, rho: np.ndarray, N: int) -> list[np.ndarray]:
@@ -142,7 +157,6 @@ def _relinearise(L: np.ndarray, rho: np.ndarray, N: int) -> list[np.ndarray]:
     Z = Vt[L.shape[0]:].T  # (p + 1, r): the products and the homogenising 1
     r = Z.shape[1]
     C = _minor_rows(Z[:p], N)
-    iu = np.triu_indices(r)
     _, s, Wt = np.linalg.svd(C)
     n_null = C.shape[1] - np.count_nonzero(s > 1e-10 * s[0])
     lambdas = []
@@ -153,9 +167,7 @@ def _relinearise(L: np.ndarray, rho: np.ndarray, N: int) -> list[np.ndarray]:
     else:
         # exactly determined: r solutions; multiplication matrix on the null space
         Nl = Wt[C.shape[1] - r:].T  # (r(r+1)/2, r)
-        pos = np.zeros((r, r), dtype=int)
-        pos[iu] = np.arange(len(iu[0]))
-        pos = np.maximum(pos, pos.T)
+        pos = _tri(r)[1]
         Ng = np.einsum("j,jkc->kc", _G[:r], Nl[pos])
         Nh = np.einsum("j,jkc->kc", _H[:r], Nl[pos])
         w, E = np.linalg.eig(np.linalg.solve(Ng, Nh))
@@ -170,15 +182,15 @@ def _relinearise(L: np.ndarray, rho: np.ndarray, N: int) -> list[np.ndarray]:
     return out
 
 
-def _hypotheses(D: np.ndarray, rho: np.ndarray, n_max: int) -> list[np.ndarray]:
-    """Initial betas (padded to ``n_max``) for ``N = 1..n_max``."""
-    dots = np.einsum("kpi,lpi->pkl", D, D)  # (pairs, n_max, n_max)
+def _hypotheses(dots: np.ndarray, rho: np.ndarray, n_max: int) -> list[np.ndarray]:
+    """Initial betas (padded to ``n_max``) for ``N = 1..n_max``; ``dots`` (pairs, n_max, n_max)
+    holds ``Delta_k . Delta_l`` per control-point pair."""
     out = []
     for N in range(1, n_max + 1):
-        iu = np.triu_indices(N)
-        L = dots[:, iu[0], iu[1]] * np.where(iu[0] == iu[1], 1.0, 2.0)
+        iu, _, w = _tri(N)
+        L = dots[:, iu[0], iu[1]] * w
         if L.shape[1] <= L.shape[0]:
-            b = np.linalg.lstsq(L, rho, rcond=None)[0]
+            b = np.linalg.solve(L.T @ L, L.T @ rho)
             betas = [_beta_from_products(_sym_from_upper(b, N))]
         else:
             betas = _relinearise(L, rho, N)
@@ -189,17 +201,21 @@ def _hypotheses(D: np.ndarray, rho: np.ndarray, n_max: int) -> list[np.ndarray]:
     return out
 
 
-def _gauss_newton(beta: np.ndarray, D: np.ndarray, rho: np.ndarray) -> np.ndarray:
-    """Gauss-Newton on the distance residuals, all hypotheses at once: beta (H, N)."""
+def _gauss_newton(beta: np.ndarray, dots: np.ndarray, rho: np.ndarray) -> np.ndarray:
+    """Gauss-Newton on the distance residuals, all hypotheses at once: beta (H, N).
+
+    With ``G_p = [Delta_k . Delta_l]`` of pair p, ``||c_a - c_b||^2 = beta^T G_p beta``, so the
+    residual is ``rho_p - beta^T G_p beta`` and its gradient ``2 G_p beta``.
+    """
     eye = 1e-12 * np.eye(beta.shape[1])
     for _ in range(_GN_ITERATIONS):
-        dc = np.einsum("hk,kpi->hpi", beta, D)
-        r = rho - np.einsum("hpi,hpi->hp", dc, dc)
-        J = 2.0 * np.einsum("hpi,kpi->hpk", dc, D)
-        JtJ = np.einsum("hpk,hpl->hkl", J, J)
+        Gb = np.einsum("pkl,hl->hpk", dots, beta)
+        r = rho - np.einsum("hpk,hk->hp", Gb, beta)
+        JtJ = np.einsum("hpk,hpl->hkl", Gb, Gb)
         scale = np.einsum("hkk->h", JtJ)[:, None, None]
-        step = np.linalg.solve(JtJ + eye * scale, np.einsum("hpk,hp->hk", J, r)[..., None])
-        beta = beta + step[..., 0]
+        # J = 2 Gb: the step (J^T J)^-1 J^T r = (Gb^T Gb)^-1 Gb^T r / 2
+        step = np.linalg.solve(JtJ + eye * scale, np.einsum("hpk,hp->hk", Gb, r)[..., None])
+        beta = beta + 0.5 * step[..., 0]
     return beta
 
 
@@ -215,7 +231,8 @@ def candidates(P: np.ndarray, m: np.ndarray) -> list[Candidate]:
     D = W[:, ia] - W[:, ib]  # (n_max, pairs, 3)
     rho = np.sum((C[ia] - C[ib]) ** 2, axis=1)
 
-    betas = np.array(_hypotheses(D, rho, n_max))
+    dots = np.einsum("kpi,lpi->pkl", D, D)
+    betas = np.array(_hypotheses(dots, rho, n_max))
     c = np.einsum("hk,kji->hji", betas, W)  # (H, k+1, 3) camera-frame control points
     X = np.einsum("nj,hji->hni", alphas, c)
     # scale to the object's distances from the centroid
@@ -225,7 +242,7 @@ def candidates(P: np.ndarray, m: np.ndarray) -> list[Candidate]:
     ok = den > 0
     betas, dc, den = betas[ok], dc[ok], den[ok]
     betas = betas * (dc @ dw / den)[:, None]
-    betas = _gauss_newton(betas, D, rho)
+    betas = _gauss_newton(betas, dots, rho)
 
     c = np.einsum("hk,kji->hji", betas, W)
     if planar:
@@ -237,20 +254,23 @@ def candidates(P: np.ndarray, m: np.ndarray) -> list[Candidate]:
     c = c * sign[:, None, None]
     X = np.einsum("nj,hji->hni", alphas, c)
 
-    scored = []
-    for Xh in X:
-        if not np.all(np.isfinite(Xh)):
-            continue
-        R, t = align_rigid(P, Xh)
-        scored.append((reprojection_rms(R, t, P, m), R, t))
-    scored.sort(key=lambda s: s[0])
-    out: list[Candidate] = []
-    cos_merge = np.cos(np.radians(_MERGE_DEG))
-    for _, R, t in scored:
-        # rotation angle of R_a^T R_b below the merge threshold <=> (tr - 1) / 2 above its cos
-        if all(0.5 * (np.sum(R * Ra) - 1.0) < cos_merge for Ra, _ in out):
-            out.append((R, t))
-    return out
+    # score on the camera-frame points themselves (no alignment needed), best first
+    with np.errstate(divide="ignore", invalid="ignore"):
+        e = np.sum((X[..., :2] / X[..., 2:] - m) ** 2, axis=(1, 2))
+    e = np.where(np.isfinite(e), e, np.inf)
+    order = np.argsort(e)
+    # hypotheses that converged to the same betas are one candidate; select() needs only the
+    # best and the runner-up (ambiguity ratio), so two distinct ones are aligned at most
+    kept: list[int] = []
+    for h in order:
+        if not np.isfinite(e[h]):
+            break
+        if all(np.linalg.norm(betas[h] - betas[g]) > _SAME_BETA * np.linalg.norm(betas[g])
+               for g in kept):
+            kept.append(h)
+            if len(kept) == 2:
+                break
+    return [align_rigid(P, X[h]) for h in kept]
 
 
 solve = make_solver("epnp", candidates, min_points=4)
