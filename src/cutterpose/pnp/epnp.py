@@ -48,7 +48,8 @@ Deviations from the reference code (notes sections 2 and 8):
     * Planarity detected, any plane; the planar case uses 3 control points in the plane.
     * Hypotheses ``N = 1..3`` (planar) / ``1..4`` (general) are all built and all refined,
       without the reference's error gates (5/800 or 20 in normalised units).
-    * Gauss-Newton on the planar betas too (notes 2.3), 5 iterations, from every hypothesis.
+    * Gauss-Newton on the planar betas too (notes 2.3), 8 iterations, from every hypothesis;
+      hypotheses whose GN has not converged are dropped (unless none converged).
     * Alignment AL-ok, never ``R -> -R`` (AL-E is wrong on planar points).
     * Sign by orientation (general) / depth (planar), not "negate all if any depth < 0".
     * Candidates are returned for selection by RMS reprojection error (not ``E_mean``); after
@@ -69,7 +70,7 @@ from .base import Candidate, align_rigid, is_planar, make_solver
 
 __all__ = ["candidates", "solve"]
 
-_GN_ITERATIONS = 5
+_GN_ITERATIONS = 8
 _SAME_BETA = 1e-6  # relative: GN from two hypotheses reached the same solution
 # fixed generic coefficients of the linear forms in the multiplication matrix (notes 6.4)
 _G = np.array([1.0, 0.37, -0.61, 0.23])
@@ -82,6 +83,10 @@ def _control_points(P: np.ndarray, planar: bool):
     n = len(P)
     Pc = P - P.mean(axis=0)
     _, s, Vt = np.linalg.svd(Pc, full_matrices=False)
+    # the sign of a principal direction is arbitrary but moves the control point to the other
+    # side; fix it by the world frame (largest component positive) so that the result does not
+    # depend on the order of the points
+    Vt = Vt * np.sign(Vt[np.arange(3), np.argmax(np.abs(Vt), axis=1)])[:, None]
     k = 2 if planar else 3
     sig = s[:k] / np.sqrt(n)
     a = (Pc @ Vt[:k].T) / sig
@@ -201,8 +206,9 @@ def _hypotheses(dots: np.ndarray, rho: np.ndarray, n_max: int) -> list[np.ndarra
     return out
 
 
-def _gauss_newton(beta: np.ndarray, dots: np.ndarray, rho: np.ndarray) -> np.ndarray:
-    """Gauss-Newton on the distance residuals, all hypotheses at once: beta (H, N).
+def _gauss_newton(beta: np.ndarray, dots: np.ndarray, rho: np.ndarray):
+    """Gauss-Newton on the distance residuals, all hypotheses at once: beta (H, N); returns the
+    refined betas and which of them converged.
 
     With ``G_p = [Delta_k . Delta_l]`` of pair p, ``||c_a - c_b||^2 = beta^T G_p beta``, so the
     residual is ``rho_p - beta^T G_p beta`` and its gradient ``2 G_p beta``.
@@ -216,7 +222,10 @@ def _gauss_newton(beta: np.ndarray, dots: np.ndarray, rho: np.ndarray) -> np.nda
         # J = 2 Gb: the step (J^T J)^-1 J^T r = (Gb^T Gb)^-1 Gb^T r / 2
         step = np.linalg.solve(JtJ + eye * scale, np.einsum("hpk,hp->hk", Gb, r)[..., None])
         beta = beta + 0.5 * step[..., 0]
-    return beta
+    # converged: the last step is negligible (a hypothesis still on its way would be scored at an
+    # arbitrary point of its path, and the choice between hypotheses would depend on that)
+    converged = np.linalg.norm(step[..., 0], axis=1) < 1e-7 * np.linalg.norm(beta, axis=1)
+    return beta, converged
 
 
 def candidates(P: np.ndarray, m: np.ndarray) -> list[Candidate]:
@@ -242,7 +251,9 @@ def candidates(P: np.ndarray, m: np.ndarray) -> list[Candidate]:
     ok = den > 0
     betas, dc, den = betas[ok], dc[ok], den[ok]
     betas = betas * (dc @ dw / den)[:, None]
-    betas = _gauss_newton(betas, dots, rho)
+    betas, converged = _gauss_newton(betas, dots, rho)
+    if converged.any():
+        betas = betas[converged]
 
     c = np.einsum("hk,kji->hji", betas, W)
     if planar:

@@ -26,13 +26,20 @@ Every minimum gives a candidate; :func:`~cutterpose.pnp.base.make_solver` select
 reprojection error, so the planar two-fold ambiguity shows up in the ambiguity ratio when ``F``
 has both minima.
 
+Points behind the camera: for a non-planar model the triangle constraints are met by the mirror
+image of the true structure in front of the camera, which no rotation maps onto the model; RPnP
+then returns a pose with a gross reprojection error (hundreds of pixels), as OpenCV's SQPnP does,
+instead of a falsy estimate (DLT and EPnP return a falsy one). For a planar model the mirror image
+*is* a rigid pose (the twin), and the image is explained exactly.
+
 Convention:
     ``P`` (n, 3) object points in mm, ``m`` (n, 2) normalised image coordinates. ``t`` of the
     polynomial is unit-free (depth of ``X_i1`` set to 1); the linear step is in mm.
 
 Deviations from the reference code (notes sections 3 and 8):
     * Exhaustive longest projection (the reference draws n random pairs: its result changes from
-      run to run).
+      run to run); ``i1`` is the pair's point with the smaller image ``u``, so the result does not
+      depend on the order of the input points.
     * ``(c, s)`` normalised to a rotation and ``T`` refitted (the reference keeps the raw linear
       ``(c, s, T)``, a slightly scaled and sheared rotation).
     * AL-ok alignment instead of AL-S (``det Sigma`` test + column flip), which is wrong on
@@ -119,7 +126,9 @@ def candidates(P: np.ndarray, m: np.ndarray) -> list[Candidate]:
     # longest projection: least cosine between two rays, exhaustively
     cosines = b @ b.T
     i1, i2 = np.unravel_index(np.argmin(cosines), cosines.shape)
-    if i1 > i2:
+    # order the pair by the image, not by the input order, so that permuting the points does not
+    # change the result (the cost is not symmetric in i1, i2 under noise)
+    if (m[i1, 0], m[i1, 1]) > (m[i2, 0], m[i2, 1]):
         i1, i2 = i2, i1
     edge = P[i2] - P[i1]
     if not np.any(edge):
