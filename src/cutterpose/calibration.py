@@ -268,6 +268,7 @@ def _order_by_mark(gray: np.ndarray, grid: np.ndarray, plate: CirclePlate):
         ex, ey = cand[0, 1] - cand[0, 0], cand[1, 0] - cand[0, 0]
         if ex[0] * ey[1] - ex[1] * ey[0] > 0:
             return cand, contrast
+    # only reachable for non-square grids (a square plate is symmetric about its diagonal)
     raise FeatureError("grid order is mirrored: the image shows the plate's back")
 
 

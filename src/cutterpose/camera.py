@@ -511,7 +511,9 @@ def _write_opencv_yaml(cam: Camera, path: Path) -> None:
 
 
 def load_camera(path) -> Camera:
-    """Read a camera file: JSON (``.json``) or OpenCV YAML (``.yml``/``.yaml``/``.xml``).
+    """Read a camera file: JSON (``.json``) or OpenCV YAML (``.yml``/``.yaml``/``.xml``); a HALCON
+    camera parameter file (``.dat``/``.cal`` or ``ParGroup`` content) or a ROS camera_info YAML
+    (``distortion_model`` key) is read by :mod:`cutterpose.camera_formats`.
 
     Raises
     ------
@@ -522,6 +524,13 @@ def load_camera(path) -> Camera:
     if not path.is_file():
         raise CameraFileError(f"{path}: camera file not found")
     suffix = path.suffix.lower()
+    from . import camera_formats  # HALCON .dat and ROS camera_info (issue 6); no import cycle
+
+    fmt = camera_formats.sniff_format(path)
+    if fmt == "halcon":
+        return camera_formats.read_halcon(path)
+    if fmt == "ros":
+        return camera_formats.read_ros(path)
     if suffix in (".yml", ".yaml", ".xml"):
         return _read_opencv_yaml(path)
     try:
@@ -532,9 +541,18 @@ def load_camera(path) -> Camera:
 
 
 def save_camera(cam: Camera, path) -> None:
-    """Write a camera as JSON (``.json``) or OpenCV YAML (``.yml``/``.yaml``/``.xml``)."""
+    """Write a camera as JSON (``.json``) or OpenCV YAML (``.yml``/``.yaml``/``.xml``); HALCON
+    (``.dat``/``.cal``) and ROS camera_info (``.ros.yaml``, ``*camera_info*.yaml``) via
+    :mod:`cutterpose.camera_formats`."""
     path = Path(path)
-    if path.suffix.lower() in (".yml", ".yaml", ".xml"):
+    from . import camera_formats
+
+    fmt = camera_formats.sniff_format(path, for_writing=True)
+    if fmt == "halcon":
+        camera_formats.write_halcon(cam, path)
+    elif fmt == "ros":
+        camera_formats.write_ros(cam, path)
+    elif path.suffix.lower() in (".yml", ".yaml", ".xml"):
         _write_opencv_yaml(cam, path)
     else:
         path.write_text(json.dumps(cam.to_dict(), indent=2) + "\n")

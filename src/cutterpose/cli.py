@@ -180,6 +180,184 @@ def render_set_cmd(
 
 
 # ---- section: calibrate, render-plate, camera convert (issue 6) ---------------------------
+def _plate_from_options(plate_file: str | None, grid: str | None, spacing_mm: float | None,
+                        diameter_mm: float | None):
+    """The plate from ``--plate plate.json`` or from ``--grid RxC --spacing-mm S``."""
+    from .errors import InputError
+    from .plate import CirclePlate, load_plate
+
+    if plate_file is not None:
+        if grid is not None or spacing_mm is not None:
+            raise InputError("give either --plate or --grid/--spacing-mm, not both")
+        return load_plate(plate_file)
+    if grid is None and spacing_mm is None:
+        return CirclePlate()
+    try:
+        rows, cols = (int(v) for v in (grid or "7x7").lower().split("x"))
+    except ValueError:
+        raise InputError(f"--grid must look like 7x7, got {grid!r}") from None
+    s = 30.0 if spacing_mm is None else float(spacing_mm)
+    d = 0.5 * s if diameter_mm is None else float(diameter_mm)
+    return CirclePlate(rows=rows, cols=cols, spacing_mm=s, diameter_mm=d)
+
+
+@app.command("render-plate")
+@friendly
+def render_plate_cmd(
+    out: str = typer.Option(..., "--out", help="Output folder (images, plate.json, truth.json)."),
+    count: int = typer.Option(15, min=1, help="Number of plate images."),
+    camera: str = typer.Option(None, help="table1 (default), synthetic, or a camera file."),
+    seed: int = typer.Option(0, help="Seed of the poses and the sensor noise."),
+    preset: str = typer.Option("easy", help="Sensor/blur preset of the holder renderer "
+                               "(easy, dim, blurred, ...)."),
+    grid: str = typer.Option("7x7", help="Circle grid, rows x cols."),
+    spacing_mm: float = typer.Option(30.0, help="Circle spacing in mm."),
+    diameter_mm: float = typer.Option(15.0, help="Circle diameter in mm."),
+    distance_mm: str = typer.Option("400,700", help="Range of plate distances in mm."),
+):
+    """Render images of the circle calibration plate at poses that cover the field."""
+    import json
+    from pathlib import Path
+
+    import cv2
+    import numpy as np
+
+    from .errors import InputError
+    from .plate import render_plate, sample_plate_poses, save_plate
+    from .render import preset as get_preset
+
+    plate = _plate_from_options(None, grid, spacing_mm, diameter_mm)
+    settings = get_preset(preset)
+    try:
+        dist = tuple(float(v) for v in distance_mm.split(","))
+        assert len(dist) == 2 and 0 < dist[0] <= dist[1]
+    except (ValueError, AssertionError):
+        raise InputError(f"--distance-mm must be MIN,MAX in mm, got {distance_mm!r}") from None
+    cam = _render_camera(camera)
+    folder = Path(out)
+    folder.mkdir(parents=True, exist_ok=True)
+    poses = sample_plate_poses(cam, count, plate, distance_mm=dist, seed=seed)
+    rng = np.random.default_rng(seed)
+    images = []
+    for k, pose in enumerate(poses):
+        name = f"plate_{k:04d}.png"
+        cv2.imwrite(str(folder / name), render_plate(cam, pose, plate, settings=settings,
+                                                     rng=rng))
+        centres = cam.project(pose.apply(plate.points_mm))
+        images.append({"file": name, "R_cam_plate": pose.R.tolist(),
+                       "t_cam_plate_mm": pose.t_mm.tolist(), "centers_px": centres.tolist()})
+        log(f"{name}: plate at {np.linalg.norm(pose.t_mm):.0f} mm")
+    save_plate(plate, folder / "plate.json")
+    truth = {"camera": cam.to_dict(), "plate": plate.to_dict(), "preset": settings.name,
+             "images": images}
+    (folder / "truth.json").write_text(json.dumps(truth, indent=1) + "\n")
+    typer.echo(f"wrote {count} images, plate.json and truth.json to {folder}")
+
+
+@app.command("calibrate")
+@friendly
+def calibrate_cmd(
+    images: list[str] = typer.Argument(..., help="Plate images (files or folders)."),
+    out: str = typer.Option(..., "--out", help="Camera file to write (.json, .yml, .dat, "
+                            ".ros.yaml)."),
+    plate_file: str = typer.Option(None, "--plate", help="plate.json (from render-plate)."),
+    grid: str = typer.Option(None, help="Circle grid rows x cols, e.g. 7x7 (without --plate)."),
+    spacing_mm: float = typer.Option(None, help="Circle spacing in mm (without --plate)."),
+    diameter_mm: float = typer.Option(None, help="Circle diameter in mm (default: spacing/2)."),
+    model: str = typer.Option("division", help="division (HALCON, our least squares) or "
+                              "opencv (cv2.calibrateCamera)."),
+    pixel_height_um: float = typer.Option(3.45, help="Fixed pixel height Sy of the division "
+                                          "model, from the sensor's datasheet."),
+    bias_rounds: int = typer.Option(2, min=0, help="Rounds of the ellipse-centre bias "
+                                    "correction (0: plain ellipse centres)."),
+    report: str = typer.Option(None, help="Report JSON (default: <out stem>.report.json)."),
+    json_out: bool = typer.Option(False, "--json", help="Print the report as JSON."),
+):
+    """Calibrate a camera from images of the circle plate (Zhang + Levenberg-Marquardt)."""
+    import json
+    from pathlib import Path
+
+    from .calibration import calibrate_images
+    from .camera_formats import convert_camera, detect_format, write_camera
+
+    plate = _plate_from_options(plate_file, grid, spacing_mm, diameter_mm)
+    paths = []
+    for a in images:
+        p = Path(a)
+        if p.is_dir():
+            paths += sorted(q for q in p.iterdir()
+                            if q.suffix.lower() in (".png", ".jpg", ".jpeg", ".bmp", ".tif",
+                                                    ".tiff"))
+        else:
+            paths.append(p)
+    fmt = detect_format(out, for_writing=True)
+
+    def progress(name, reason):
+        if reason:
+            log(f"warning: {name} skipped: {reason}")
+
+    res = calibrate_images(paths, plate, model=model, pixel_height_m=pixel_height_um * 1e-6,
+                           bias_rounds=bias_rounds, progress=progress)
+    conv = convert_camera(res.camera, fmt, pixel_height_um * 1e-6)
+    write_camera(conv.camera, out, fmt)
+    rep = res.to_dict()
+    rep["written"] = {"file": str(out), "format": fmt, "exact": conv.exact,
+                      "max_conversion_error_px": conv.max_error_px}
+    rep_path = Path(report) if report else Path(out).with_name(Path(out).stem + ".report.json")
+    rep_path.write_text(json.dumps(rep, indent=1, default=float) + "\n")
+    if json_out:
+        typer.echo(json.dumps(rep, indent=1, default=float))
+        return
+    cam = res.camera.to_dict()
+    typer.echo(f"model: {res.camera.model}; {len(res.used)} images used, "
+               f"{len(res.skipped)} skipped")
+    for k, v in cam.items():
+        if k not in ("name", "model"):
+            typer.echo(f"  {k}: {v}")
+    typer.echo("standard deviations:")
+    for k, v in res.std.items():
+        typer.echo(f"  {k}: {v:.4g}")
+    typer.echo(f"RMS reprojection error: {res.rms_px:.4f} px")
+    for n, e in zip(res.used, res.per_image_rms_px):
+        typer.echo(f"  {n}: {e:.4f} px")
+    for n, why in res.skipped.items():
+        typer.echo(f"  {n}: skipped ({why})")
+    if not conv.exact:
+        typer.echo(f"note: {fmt} cannot hold the {res.camera.model} model; wrote the nearest "
+                   f"{conv.camera.model} camera (worst pixel error {conv.max_error_px:.4f} px)")
+    typer.echo(f"wrote {out} and {rep_path}")
+
+
+@camera_app.command("convert")
+@friendly
+def camera_convert_cmd(
+    src: str = typer.Argument(..., help="Camera file (.json, .yml/.yaml/.xml, ROS camera_info "
+                              ".yaml, HALCON .dat)."),
+    dst: str = typer.Argument(..., help="Output file; the format follows the suffix (.json, "
+                              ".yml, .ros.yaml, .dat) unless --to is given."),
+    to: str = typer.Option(None, help="Output format: json, opencv, ros or halcon."),
+    pixel_height_um: float = typer.Option(None, help="Pixel height Sy when converting to the "
+                                          "division model (default 3.45)."),
+):
+    """Convert a camera file between formats and models (says when it is approximate)."""
+    from .camera import load_camera
+    from .camera_formats import FORMATS, convert_camera, detect_format, write_camera
+    from .errors import InputError
+
+    cam = load_camera(src)
+    fmt = to or detect_format(dst, for_writing=True)
+    if fmt not in FORMATS:
+        raise InputError(f"--to must be one of {', '.join(FORMATS)}, got {fmt!r}")
+    conv = convert_camera(cam, fmt, None if pixel_height_um is None else pixel_height_um * 1e-6)
+    write_camera(conv.camera, dst, fmt)
+    if conv.exact:
+        typer.echo(f"wrote {dst} ({fmt}, {conv.camera.model} model): exact")
+    else:
+        typer.echo(f"wrote {dst} ({fmt}, {conv.camera.model} model): APPROXIMATE, the "
+                   f"{cam.model} model was fitted over the image; worst pixel error "
+                   f"{conv.max_error_px:.4f} px, RMS {conv.rms_error_px:.4f} px")
+
+
 
 
 def main() -> None:  # pragma: no cover

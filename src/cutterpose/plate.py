@@ -211,34 +211,33 @@ def save_plate(plate: CirclePlate, path) -> None:
 
 # ------------------------------------------------------------------------------------------
 # rendering
-def apply_sensor_effects(image: np.ndarray, rng: np.random.Generator, noise_sigma: float = 0.0,
-                         blur_sigma_px: float = 0.0) -> np.ndarray:
-    """Defocus blur, Gaussian sensor noise and 8-bit quantisation of a float image in [0, 255].
+def apply_sensor_effects(image: np.ndarray, rng: np.random.Generator,
+                         settings=None) -> np.ndarray:
+    """Defocus blur, shot and read noise and 8-bit quantisation of a float image in DN.
 
-    The single place where the plate renderer models the sensor, so that it can switch to the
-    holder renderer's helpers (``render.py``) without touching the geometry.
+    The holder renderer's own helpers (:func:`cutterpose.render.defocus`,
+    :func:`cutterpose.render.add_sensor_noise`) with a :class:`cutterpose.render.RenderSettings`
+    (default: the ``easy`` preset), so plate and holder images share one sensor model.
     """
-    import cv2
+    from .render import add_sensor_noise, defocus, preset
 
-    img = np.asarray(image, np.float32)
-    if blur_sigma_px > 0:
-        img = cv2.GaussianBlur(img, (0, 0), float(blur_sigma_px))
-    if noise_sigma > 0:
-        img = img + rng.normal(0.0, noise_sigma, img.shape).astype(np.float32)
-    return np.clip(np.rint(img), 0, 255).astype(np.uint8)
+    s = settings if settings is not None else preset("easy")
+    return add_sensor_noise(defocus(image, s.defocus_sigma_px, s.defocus_kernel), s, rng)
 
 
 def render_plate(camera: Camera, pose: Pose, plate: CirclePlate | None = None, *,
-                 light: float = 215.0, dark: float = 30.0, background: float = 90.0,
-                 noise_sigma: float = 2.0, blur_sigma_px: float = 0.0,
-                 rng: np.random.Generator | None = None, strip_rows: int = 256) -> np.ndarray:
+                 settings=None, light: float = 215.0, dark: float = 30.0,
+                 background: float = 90.0, rng: np.random.Generator | None = None,
+                 strip_rows: int = 256) -> np.ndarray:
     """Render the plate at ``pose`` (plate frame in camera frame) through ``camera``.
 
     Every pixel centre is traced back: observed pixel -> ``camera.pixel_to_ray`` (undoes the
     lens distortion exactly) -> intersection with the plate plane -> plate coordinates, where
     :meth:`CirclePlate.darkness` is evaluated with a footprint from the local Jacobian of that
     map. Perspective and distortion are therefore exact, circles appear as the true (not
-    ellipse-fitted) images. Pixels off the plate show ``background``.
+    ellipse-fitted) images. Pixels off the plate show ``background``. ``settings`` (a
+    :class:`cutterpose.render.RenderSettings`, e.g. ``render.preset("blurred")``; default
+    ``easy``) sets defocus and sensor noise exactly as for the holder images.
 
     Returns
     -------
@@ -285,7 +284,7 @@ def render_plate(camera: Camera, pose: Pose, plate: CirclePlate | None = None, *
             val = light + (dark - light) * dk
             strip = background + (val - background) * cover
             img[vs:ve, u0:u1 + 1] = np.where(on | (cover > 0), strip, background)
-    return apply_sensor_effects(img, rng, noise_sigma, blur_sigma_px)
+    return apply_sensor_effects(img, rng, settings)
 
 
 def sample_plate_poses(camera: Camera, count: int, plate: CirclePlate | None = None, *,
