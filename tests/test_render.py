@@ -197,6 +197,12 @@ def test_render_set_writes_the_protocol_format(tmp_path):
         np.testing.assert_allclose(e["corners_px"],
                                    CAM.project(pose.apply(HOLDER.points_holder_mm)), atol=1e-9)
         assert e["difficulty"] in PRESETS
+    # the set does not depend on the number of worker processes
+    path2 = render_set(3, 7, tmp_path / "par", CAM, workers=2)
+    assert json.loads(path2.read_text())["images"] == doc["images"]
+    for e in doc["images"]:
+        np.testing.assert_array_equal(cv2.imread(str(tmp_path / e["file"])),
+                                      cv2.imread(str(tmp_path / "par" / e["file"])))
 
 
 def test_cli_render_and_render_set(tmp_path):

@@ -100,15 +100,15 @@ class RenderSettings:
     cutterhead_albedo: float = 0.09
     # texture of the top face
     texture: float = 0.08            # relative std of the mottled albedo
-    machining_marks: float = 0.05    # relative amplitude of the fly-cutting arcs
+    machining_marks: float = 0.06    # relative amplitude of the fly-cutting arcs
     scratches: int = 30
     corrosion: float = 0.08          # fraction of the top face under corrosion blotches
     corrosion_darkening: float = 0.3
     edge_wear_mm: float = 0.0        # mean width of the worn band along the inner contour
-    edge_wear_darkening: float = 0.55
+    edge_wear_darkening: float = 0.7
     # occlusion: number of corners partly covered by a lump of muck in front of the holder
     occluded_corners: int = 0
-    occluder_radius_px: float = 60.0
+    occluder_radius_px: float = 90.0
     # optics and sensor
     defocus_sigma_px: float = 0.8
     defocus_kernel: str = "gaussian"  # or "disk" (radius = 2 sigma)
@@ -126,13 +126,13 @@ PRESETS: dict[str, RenderSettings] = {
     "easy": RenderSettings(),
     "dim": RenderSettings(name="dim", light_dn=120.0, beam_sigma_deg=28.0, electrons_per_dn=4.0,
                           read_noise_dn=2.5, ambient_dn=1.5),
-    "worn": RenderSettings(name="worn", edge_wear_mm=3.0, corrosion=0.25, scratches=120,
+    "worn": RenderSettings(name="worn", edge_wear_mm=4.0, corrosion=0.25, scratches=120,
                            corrosion_darkening=0.5,
                            texture=0.14, machining_marks=0.08),
     "occluded": RenderSettings(name="occluded", occluded_corners=1),
     "blurred": RenderSettings(name="blurred", defocus_sigma_px=2.5, defocus_kernel="disk"),
     "hard": RenderSettings(name="hard", light_dn=140.0, beam_sigma_deg=30.0, electrons_per_dn=5.0,
-                           read_noise_dn=2.5, edge_wear_mm=3.0, corrosion=0.25, scratches=120,
+                           read_noise_dn=2.5, edge_wear_mm=4.0, corrosion=0.25, scratches=120,
                            corrosion_darkening=0.5,
                            texture=0.14, machining_marks=0.08, occluded_corners=1,
                            defocus_sigma_px=1.5),
@@ -263,25 +263,23 @@ def add_sensor_noise(img: np.ndarray, settings: RenderSettings,
                      rng: np.random.Generator) -> np.ndarray:
     """Irradiance in DN (float) -> noisy 8-bit image.
 
-    Shot noise: the signal in electrons ``N = I k`` (``k = electrons_per_dn``) is Poisson; above
-    ``N = 400`` the Gaussian ``N + sqrt(N) z`` is used instead (the Poisson draw is 8x slower and
-    the two agree to < 1% in every moment that matters at 8 bit). Read noise: Gaussian of std
-    ``read_noise_dn``. Rounded and clipped to 0..255.
+    Shot noise: the signal in electrons ``N = I k`` (``k = electrons_per_dn``) is Poisson below
+    ``N = 8`` and the Gaussian ``N + sqrt(N) z`` above (numpy's Poisson draw costs 0.1 s per Mpx,
+    ten times the Gaussian, and a dim image has most of its pixels below 20 electrons; from 8
+    electrons on the two differ by a skewness below 0.35, i.e. fractions of a grey level).
+    Read noise: Gaussian of std ``read_noise_dn``. Rounded and clipped to 0..255.
     """
     k = float(settings.electrons_per_dn)
     sig = np.clip(np.asarray(img, np.float32), 0.0, None)
-    out = np.empty(sig.shape, np.float32)
     if k > 0:
         e = sig * np.float32(k)
-        low = e < 400.0
-        out[low] = rng.poisson(e[low]).astype(np.float32) / np.float32(k)
-        hi = ~low
-        n_hi = int(hi.sum())
-        if n_hi:
-            z = rng.standard_normal(n_hi, dtype=np.float32)
-            out[hi] = (e[hi] + np.sqrt(e[hi]) * z) / np.float32(k)
+        out = e + np.sqrt(e) * rng.standard_normal(sig.shape, dtype=np.float32)
+        low = np.flatnonzero(e < 8.0)
+        if low.size:
+            out.flat[low] = rng.poisson(e.flat[low]).astype(np.float32)
+        out /= np.float32(k)
     else:
-        out[:] = sig
+        out = sig.copy()
     if settings.read_noise_dn > 0:
         out += np.float32(settings.read_noise_dn) * rng.standard_normal(sig.shape, np.float32)
     return np.clip(np.rint(out), 0, 255).astype(np.uint8)
@@ -340,8 +338,9 @@ class _Scene:
     """Geometry, pose and textures of one image."""
 
     def __init__(self, pose: Pose, holder: Holder, settings: RenderSettings,
-                 rng: np.random.Generator):
+                 rng: np.random.Generator, texel_mm: float = 0.25):
         self.pose, self.holder, self.s = pose, holder, settings
+        self.texel_mm = float(texel_mm)
         R = pose.R
         self.Rt = R.T.astype(np.float64)
         self.o_h = -R.T @ pose.t_mm
@@ -370,53 +369,69 @@ class _Scene:
         # one stream per surface: a setting of one surface does not reshuffle the others
         rng, r_floor, r_cut, r_wall = rng.spawn(4)
         margin = 10.0
-        texel = 0.25
+        texel = self.texel_mm
+        t = 0.25 / texel  # texture scales below are written in texels of 0.25 mm
         w = int(math.ceil((2 * a + 2 * margin) / texel))
         h = int(math.ceil((2 * b + 2 * margin) / texel))
         x0, y0 = -a - margin, -b - margin
         X = (x0 + (np.arange(w, dtype=np.float32) + 0.5) * texel)[None, :]
         Y = (y0 + (np.arange(h, dtype=np.float32) + 0.5) * texel)[:, None]
-        alb = 1.0 + s.texture * (0.7 * fractal_noise((h, w), rng, 160, 5)
-                                 + 0.3 * fractal_noise((h, w), rng, 12, 3))
-        # fly-cutting marks: arcs round a cutter centre off the part, with a jittered pitch
+        alb = 1.0 + s.texture * (0.7 * fractal_noise((h, w), rng, 160 * t, 5)
+                                 + 0.3 * fractal_noise((h, w), rng, 12 * t, 3))
+        gloss = np.ones((h, w), np.float32)
+        # fly-cutting marks: arcs round a cutter centre off the part; a jittered pitch of about
+        # a millimetre (a few pixels) and a slow beat between passes. The marks modulate the
+        # specular lobe more than the albedo: that is what makes machined steel look machined.
         cx, cy = rng.uniform(-1.5, 1.5) * a, rng.choice([-1, 1]) * rng.uniform(2.5, 4.0) * b
         r = np.sqrt((X - cx) ** 2 + (Y - cy) ** 2)
         pitch = rng.uniform(0.8, 1.6)
-        phase = 2 * np.pi * (r / pitch) + 1.5 * fractal_noise((h, w), rng, 200, 2)
-        alb += s.machining_marks * (np.sin(phase) + 0.5 * np.sin(2 * phase + 1.0))
-        # streaks along the cutting direction (anisotropic noise)
+        phase = 2 * np.pi * (r / pitch) + 1.5 * fractal_noise((h, w), rng, 200 * t, 2)
+        beat = 0.5 + 0.5 * np.sin(2 * np.pi * r / rng.uniform(15.0, 40.0))
+        # marks finer than two texels average out within a pixel: fade them
+        fade = float(np.clip(pitch / (2 * texel) - 1.0, 0.0, 1.0))
+        marks = fade * (np.sin(phase) + 0.5 * np.sin(2 * phase + 1.0)) * (0.5 + beat)
+        alb += s.machining_marks * marks
+        gloss *= np.clip(1.0 + 3.0 * s.machining_marks * marks, 0.0, None)
+        # fine streaks along the cutting direction (noise blurred along X)
         streak = cv2.GaussianBlur(rng.standard_normal((h, w), dtype=np.float32), (0, 0),
-                                  sigmaX=1.0, sigmaY=1.0)
-        alb += 0.6 * s.texture * streak / max(float(streak.std()), 1e-6)
-        gloss = np.ones((h, w), np.float32)
+                                  sigmaX=6.0 * t, sigmaY=max(0.5, 0.6 * t))
+        alb += 0.5 * s.texture * streak / max(float(streak.std()), 1e-6)
         # scratches: thin antialiased lines, a little brighter or darker than the steel
         scr = np.zeros((h, w), np.float32)
         for _ in range(int(s.scratches)):
             p = np.array([rng.uniform(0, w), rng.uniform(0, h)])
             ang = rng.uniform(0, np.pi)
-            ln = rng.uniform(20, 400) / texel * 0.25
+            ln = rng.uniform(5.0, 100.0) / texel
             q = p + ln * np.array([np.cos(ang), np.sin(ang)])
             cv2.line(scr, (int(p[0] * 16), int(p[1] * 16)), (int(q[0] * 16), int(q[1] * 16)),
                      float(rng.choice([-1.0, 1.0]) * rng.uniform(0.15, 0.35)), 1, cv2.LINE_AA, 4)
         alb += scr
-        # corrosion blotches: thresholded low-frequency noise, dark and dull
+        # corrosion blotches: thresholded low-frequency noise, dark, dull and pitted
         if s.corrosion > 0:
-            f = fractal_noise((h, w), rng, 240, 5)
-            thr = np.quantile(f[:: 8, :: 8], 1.0 - s.corrosion)
+            f = fractal_noise((h, w), rng, 240 * t, 5)
+            thr = np.quantile(f[::8, ::8], 1.0 - s.corrosion)
             blot = np.clip((f - thr) / 0.35, 0.0, 1.0)
-            grain = 0.5 + 0.5 * np.clip(fractal_noise((h, w), rng, 6, 3), -1, 1)
-            alb *= 1.0 - s.corrosion_darkening * blot * (0.6 + 0.4 * grain)
+            grain = 0.5 + 0.5 * np.clip(fractal_noise((h, w), rng, 6 * t, 3), -1, 1)
+            pits = (rng.random((h, w), dtype=np.float32) < 0.004 / t**2 * blot).astype(np.float32)
+            pits = cv2.GaussianBlur(pits, (0, 0), max(0.5, 0.7 * t)) * 2.5
+            alb *= (1.0 - s.corrosion_darkening * blot * (0.6 + 0.4 * grain)) * np.clip(
+                1.0 - pits, 0.2, 1.0)
             gloss *= 1.0 - 0.9 * blot
-        # worn band along the inner contour: a rounded, dull edge whose width varies
+        # worn band along the inner contour: a rounded, chipped, dull edge of varying width.
+        # Its normal turns away from the light, so it darkens towards the contour; chips are
+        # bites of the band into the face.
         if s.edge_wear_mm > 0:
             pocket = np.zeros((h, w), np.uint8)
             pts = np.round((self.holder.corners_mm - [x0, y0]) / texel * 16).astype(np.int32)
             cv2.fillPoly(pocket, [pts], 1, cv2.LINE_8, 4)
             dist_mm = cv2.distanceTransform(1 - pocket, cv2.DIST_L2, 5) * texel
-            width = s.edge_wear_mm * np.clip(1.0 + 0.6 * fractal_noise((h, w), rng, 120, 3),
-                                             0.1, 3.0)
-            band = np.clip(1.0 - dist_mm / width, 0.0, 1.0) ** 1.5
-            alb *= 1.0 - s.edge_wear_darkening * band
+            width = s.edge_wear_mm * np.clip(1.0 + 0.7 * fractal_noise((h, w), rng, 120 * t, 3),
+                                             0.15, 3.0)
+            chips = np.clip(fractal_noise((h, w), rng, 10 * t, 2) - 1.2, 0.0, None) * 2.5
+            width = width * (1.0 + chips)
+            band = np.clip(1.0 - dist_mm / width, 0.0, 1.0) ** 0.8
+            grime = 0.5 + 0.5 * np.clip(fractal_noise((h, w), rng, 4 * t, 2), -1, 1)
+            alb *= 1.0 - s.edge_wear_darkening * band * (0.75 + 0.25 * grime)
             gloss *= 1.0 - band
         self.top_albedo = _Texture((s.top_albedo * np.clip(alb, 0.05, 2.0)).astype(np.float32),
                                    x0, y0, texel)
@@ -460,7 +475,9 @@ class _Scene:
         X0 = o[0] + s0 * dx
         Y0 = o[1] + s0 * dy
         in_rect = ok & (np.abs(X0) <= self.a) & (np.abs(Y0) <= self.b)
-        in_pocket = in_rect & _inside_axis_polygon(X0, Y0, self.edges)
+        in_pocket = np.zeros(n, bool)
+        ir = np.flatnonzero(in_rect)
+        in_pocket[ir] = _inside_axis_polygon(X0[ir], Y0[ir], self.edges)
         top = in_rect & ~in_pocket
         # cos(i) of a face with normal -Z: n . (-d/|d|) in the holder frame = dz / |d|
         cos_flat = dz / norm_d
@@ -505,7 +522,15 @@ class _Scene:
             C = np.float32(s.cutterhead_depth_mm)
             s1 = (C - o[2]) / dz[i]
             X1, Y1 = o[0] + s1 * dx[i], o[1] + s1 * dy[i]
-            frac, edge = _first_crossing(X0[i], Y0[i], X1, Y1, self.rect_edges)
+            # only segments whose bounding box meets the rectangle can hit a side wall
+            near = np.flatnonzero((np.minimum(X0[i], X1) <= self.a)
+                                  & (np.maximum(X0[i], X1) >= -self.a)
+                                  & (np.minimum(Y0[i], Y1) <= self.b)
+                                  & (np.maximum(Y0[i], Y1) >= -self.b))
+            frac = np.full(i.size, np.inf, np.float32)
+            edge = np.full(i.size, -1, np.int64)
+            frac[near], edge[near] = _first_crossing(X0[i[near]], Y0[i[near]], X1[near],
+                                                     Y1[near], self.rect_edges)
             wall = edge >= 0
             ci = i[~wall]
             label[ci] = CUTTERHEAD
@@ -636,7 +661,7 @@ def _occlude(value: np.ndarray, corners_px: np.ndarray, settings: RenderSettings
         for k in range(1, 6):  # irregular outline: a random Fourier series of the radius
             rad += r0 * rng.uniform(0.0, 0.25 / k) * np.cos(k * phi + rng.uniform(0, 2 * np.pi))
         cover = np.clip(rad - np.hypot(dx, dy) + 0.5, 0.0, 1.0)
-        shade = 25.0 + 12.0 * fractal_noise(cover.shape, rng, 20, 3)
+        shade = rng.uniform(15.0, 50.0) + 10.0 * fractal_noise(cover.shape, rng, 20, 3)
         sub = value[v0c:v1c, u0c:u1c]
         sub[:] = (1 - cover) * sub + cover * shade
     return [int(i) for i in chosen]
@@ -668,7 +693,9 @@ def render_holder(pose: Pose | None = None, camera: Camera | None = None,
         settings = preset(settings)
     r_scene, r_occ, r_noise = np.random.default_rng(seed).spawn(3)
     corners_px = camera.project(pose.apply(holder.points_holder_mm))
-    scene = _Scene(pose, holder, settings, r_scene)
+    # top-face texels of ~0.9 pixel footprint: finer is wasted, coarser blurs the steel
+    texel_mm = max(0.1, 0.9 * float(pose.t_mm[2]) / camera.focal_px)
+    scene = _Scene(pose, holder, settings, r_scene, texel_mm)
     value, _ = _render_irradiance(scene, camera)
     occluded = _occlude(value, corners_px, settings, r_occ)
     value = defocus(value, settings.defocus_sigma_px, settings.defocus_kernel)
@@ -707,15 +734,29 @@ def random_pose(rng: np.random.Generator, max_angle_deg: float = 10.0,
     return Pose.from_euler(*ang, sh[0], sh[1], 600.0 + sh[2])
 
 
+def _set_item(args) -> dict:
+    """Render image ``i`` of a set and write it; returns its ``truth.json`` entry."""
+    i, seed, out, camera, holder, names, p, max_angle_deg, max_shift_mm = args
+    img_seed = int(np.random.SeedSequence([seed, i]).generate_state(1)[0])
+    rng = np.random.default_rng(img_seed)
+    pose = random_pose(rng, max_angle_deg, max_shift_mm)
+    name = names[int(rng.choice(len(names), p=p))]
+    r = render_holder(pose, camera, holder, PRESETS[name], seed=img_seed)
+    fname = f"img_{i:04d}.png"
+    if not cv2.imwrite(str(Path(out) / fname), r.image):
+        raise InputError(f"{out}: could not write {fname}")
+    return r.truth_dict(fname)
+
+
 def render_set(count: int, seed: int, out_dir, camera: Camera | None = None,
                holder: Holder | None = None, mix=DEFAULT_MIX, max_angle_deg: float = 10.0,
-               max_shift_mm: float = 20.0, progress=None) -> Path:
+               max_shift_mm: float = 20.0, progress=None, workers: int = 1) -> Path:
     """Render ``count`` images at random poses into ``out_dir`` with its ``truth.json``.
 
     The difficulty of each image is drawn from ``mix`` (preset names and weights) and recorded
     under ``"difficulty"``; image ``i`` uses the seed ``SeedSequence([seed, i])``, so any image
-    can be re-rendered alone. ``progress(i, count)`` is called after each image.
-    Returns the path of ``truth.json``.
+    can be re-rendered alone and the set does not depend on ``workers`` (processes).
+    ``progress(done, count)`` is called after each image. Returns the path of ``truth.json``.
     """
     if count < 1:
         raise InputError(f"count must be >= 1, got {count}")
@@ -728,18 +769,22 @@ def render_set(count: int, seed: int, out_dir, camera: Camera | None = None,
     p /= p.sum()
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
+    jobs = [(i, seed, str(out), camera, holder, names, p, max_angle_deg, max_shift_mm)
+            for i in range(count)]
     images = []
-    for i in range(count):
-        img_seed = int(np.random.SeedSequence([seed, i]).generate_state(1)[0])
-        rng = np.random.default_rng(img_seed)
-        pose = random_pose(rng, max_angle_deg, max_shift_mm)
-        name = names[int(rng.choice(len(names), p=p))]
-        r = render_holder(pose, camera, holder, PRESETS[name], seed=img_seed)
-        fname = f"img_{i:04d}.png"
-        cv2.imwrite(str(out / fname), r.image)
-        images.append(r.truth_dict(fname))
-        if progress is not None:
-            progress(i, count)
+    if workers > 1:
+        from concurrent.futures import ProcessPoolExecutor
+
+        with ProcessPoolExecutor(max_workers=workers) as ex:
+            for k, entry in enumerate(ex.map(_set_item, jobs)):
+                images.append(entry)
+                if progress is not None:
+                    progress(k + 1, count)
+    else:
+        for k, job in enumerate(jobs):
+            images.append(_set_item(job))
+            if progress is not None:
+                progress(k + 1, count)
     doc = {"camera": camera.to_dict(), "holder": holder.to_dict(), "seed": seed,
            "presets": {n: asdict(PRESETS[n]) for n in names}, "images": images}
     path = out / "truth.json"
