@@ -159,6 +159,7 @@ def render_set_cmd(
     camera: str = typer.Option(None, help="table1 (default), synthetic, or a camera file."),
     preset: str = typer.Option(None, help="Use this preset for every image (default: a mix "
                                "of easy, dim, worn, occluded, blurred, hard)."),
+    workers: int = typer.Option(1, min=1, help="Worker processes (the set does not change)."),
 ):
     """Render an image set with its truth.json (PROTOCOL.md, exchange formats)."""
     from rich.progress import Progress
@@ -173,8 +174,8 @@ def render_set_cmd(
     cam = _render_camera(camera)
     with Progress(transient=True, console=None) as bar:
         task = bar.add_task("rendering", total=count)
-        path = render_set(count, seed, out, cam, mix=mix,
-                          progress=lambda i, n: bar.update(task, completed=i + 1))
+        path = render_set(count, seed, out, cam, mix=mix, workers=workers,
+                          progress=lambda done, n: bar.update(task, completed=done))
     typer.echo(f"wrote {count} images and {path}")
 
 
