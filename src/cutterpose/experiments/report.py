@@ -170,6 +170,18 @@ def summary_markdown(stats: list[dict], crlb: dict | None = None, title: str = "
                      + f" | {st['failed']}/{st['n']} | {_cell(st['time_median_ms'], 2)} |")
     if crlb is not None and last is not None:
         lines += _crlb_row(last, crlb)
+    if crlb:
+        lines += ["", "## Efficiency: std / CRLB per DOF (non-failed trials; 1.00 is the bound)",
+                  "", "| sigma px | method | " + " | ".join(DOF_NAMES) + " | worst |",
+                  "|---|---|" + "---|" * 7]
+        for st in stats:
+            b = crlb.get(st["sigma_px"])
+            if not b:
+                continue
+            r = [a / c if c > 0 else math.nan for a, c in zip(st["std"], b)]
+            worst = max((abs(x - 1) for x in r if math.isfinite(x)), default=math.nan)
+            lines.append(f"| {_cell(st['sigma_px'], 1)} | {st['method']} | "
+                         + " | ".join(_cell(x, 2) for x in r) + f" | {_cell(worst + 1, 2)} |")
     lines += ["", "## Over all trials with a pose (failed included), bias, error quantiles", "",
               "| sigma px | method | std_all " + " ".join(DOF_NAMES) + " | bias "
               + " ".join(DOF_NAMES) + " | no pose | rot med / p95 deg | trans med / p95 mm |",
