@@ -355,8 +355,9 @@ def camera_convert_cmd(
         typer.echo(f"wrote {dst} ({fmt}, {conv.camera.model} model): exact")
     else:
         typer.echo(f"wrote {dst} ({fmt}, {conv.camera.model} model): APPROXIMATE, the "
-                   f"{cam.model} model was fitted over the image; worst pixel error "
-                   f"{conv.max_error_px:.4f} px, RMS {conv.rms_error_px:.4f} px")
+                   f"{conv.camera.model} model was fitted to the {cam.model} camera over the "
+                   f"image; worst pixel error {conv.max_error_px:.2g} px, RMS "
+                   f"{conv.rms_error_px:.2g} px")
 
 
 
