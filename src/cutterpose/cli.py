@@ -179,6 +179,77 @@ def render_set_cmd(
     typer.echo(f"wrote {count} images and {path}")
 
 
+@app.command("measure")
+@friendly
+def measure_cmd(
+    image: str = typer.Argument(..., help="Image of the holder (PNG, JPEG, TIFF...)."),
+    camera: str = typer.Option(None, help="table1 (default), synthetic, or a camera file."),
+    holder: str = typer.Option(None, help="Holder JSON file (default: the bundled holder)."),
+    method: str = typer.Option("dm+", help="Pose method (cutterpose.methods)."),
+    overlay: str = typer.Option(None, "--overlay", help="Write an overlay PNG here."),
+    as_json: bool = typer.Option(False, "--json", help="One JSON object on stdout."),
+):
+    """Measure the holder's pose in one image (exit 3 when the pose is refused)."""
+    import json as _json
+
+    from .features import load_image
+    from .holder import load_holder
+    from .pipeline import measure
+
+    cam = _render_camera(camera)
+    hol = load_holder(holder) if holder else None
+    img = load_image(image)
+    m = measure(img, cam, hol, method)
+    if overlay:
+        from .holder import default_holder
+        from .overlay import write_overlay
+
+        write_overlay(img, m, cam, hol or default_holder(), overlay)
+        log(f"wrote {overlay}")
+    if as_json:
+        typer.echo(_json.dumps(m.to_dict()))
+    elif m.pose is not None:
+        a, b, g, x, y, z = m.pose.dof
+        s = m.std_dof
+        typer.echo(f"alpha {a:.3f} +- {s[0]:.3f} deg  beta {b:.3f} +- {s[1]:.3f} deg  "
+                   f"gamma {g:.3f} +- {s[2]:.3f} deg")
+        typer.echo(f"X {x:.2f} +- {s[3]:.2f} mm  Y {y:.2f} +- {s[4]:.2f} mm  "
+                   f"Z {z:.2f} +- {s[5]:.2f} mm")
+        typer.echo(f"RMS residual {m.quality.rms_px:.3f} px; "
+                   + ", ".join(f"{k} {v:.0f} ms" for k, v in m.timings_ms.items()))
+    if not m.ok:
+        fail(f"pose refused: {m.quality.reason}", code=3)
+
+
+@experiment_app.command("images")
+@friendly
+def experiment_images_cmd(
+    folder: str = typer.Argument(..., help="Image set: a folder with truth.json."),
+    methods: str = typer.Option("dm,dm+,dlt,epnp,rpnp,aspnp,opnp",
+                                help="Comma-separated methods."),
+    out: str = typer.Option("results/images", help="Output folder."),
+    workers: int = typer.Option(1, min=1, help="Worker processes."),
+    limit: int = typer.Option(None, help="Only the first N images."),
+    no_refine: bool = typer.Option(False, "--no-refine",
+                                   help="The paper's lines only (no gradient refinement)."),
+):
+    """Table 2 figures of every method on an image set (trials.csv, summary.md)."""
+    from rich.progress import Progress
+
+    from .experiments.images import run_images
+    from .features import FeatureParams
+    from .methods import parse_methods
+
+    names = [m.name for m in parse_methods(methods)]
+    with Progress(transient=True) as bar:
+        task = bar.add_task("images", total=None)
+        run_images(folder, names, out, workers=workers, limit=limit,
+                   params=FeatureParams(refine=not no_refine),
+                   progress=lambda done, n: bar.update(task, completed=done, total=n))
+    typer.echo(f"wrote {out}/trials.csv, summary.md, corners.csv, failures.csv")
+    typer.echo((__import__("pathlib").Path(out) / "summary.md").read_text())
+
+
 
 # ---- section: calibrate, render-plate, camera convert (issue 6) ---------------------------
 def _plate_from_options(plate_file: str | None, grid: str | None, spacing_mm: float | None,

@@ -1,0 +1,381 @@
+"""From one image to a checked pose: :func:`measure`.
+
+Image processing (:mod:`cutterpose.features`, paper section 2.1) gives the 20 corners in
+contour order; a pose method (:mod:`cutterpose.methods`) turns them into a pose; the residuals
+give the pose's per-DOF standard deviations and a quality verdict that refuses, with the reason,
+a pose that should not be used.
+
+Correspondences for the PnP methods ("contour order"): the contour gives the corners in order up
+to a cyclic shift and a direction. The direction is fixed by the sign of the polygon's area
+(the holder is always seen from its front, so the image polygon turns the same way as the model
+projected at the nominal pose), the shift by comparing the corner-to-corner vectors, normalised
+by the perimeter, with those of the model at the nominal pose: within the working range
+(+-10 deg, holder X axis along the image rows) this separates the holder's 180 deg symmetric
+assignments, and the edge lengths separate the others. The correspondence-free methods
+(``initial``, ``dm``, ``dm+``) get the contour order as it is.
+
+Per-DOF standard deviation (Gauss-Newton covariance at the estimate): with ``r`` the 40 residuals
+(detected minus projected ideal pixels, corners matched by the best cyclic assignment) and ``J``
+their Jacobian with respect to ``(alpha, beta, gamma, X, Y, Z)``,
+
+    s^2 = |r|^2 / (40 - 6),        Cov = s^2 (J^T J)^-1,        std = sqrt(diag Cov).
+
+Convention:
+    Pose as in :mod:`cutterpose.pose` (holder in camera frame, mm, Z-Y-X Euler angles in deg).
+    Pixels: ``corners_px`` are observed (distorted) image pixels; residuals are in ideal pixels.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .camera import Camera, default_camera
+from .errors import CutterposeError, FeatureError, ImageError
+from .estimate import PoseEstimate
+from .features import FeatureParams, Features, detect_features, load_image
+from .holder import Holder, default_holder
+from .methods import get_method
+from .pose import Pose, rotation_from_euler_deg
+
+__all__ = ["QualityLimits", "Quality", "Measurement", "measure", "measure_features",
+           "order_for_model", "pose_std", "demo", "DOF_NAMES"]
+
+DOF_NAMES = ("alpha_deg", "beta_deg", "gamma_deg", "X_mm", "Y_mm", "Z_mm")
+
+
+@dataclass(frozen=True)
+class QualityLimits:
+    """When :func:`measure` refuses a pose.
+
+    The working range is the real rig's (paper section 3.2): +-10 deg and +-20 mm around the
+    nominal pose, accepted with a tolerance.
+    """
+
+    max_rms_px: float = 1.5            #: RMS corner residual (ideal px)
+    max_corner_residual_px: float = 4.0
+    max_ambiguity_ratio: float = 0.8   #: best / second-best candidate error
+    range_center_dof: tuple = (0.0, 0.0, 0.0, 0.0, 0.0, 600.0)
+    range_half_width_dof: tuple = (10.0, 10.0, 10.0, 20.0, 20.0, 20.0)
+    range_tolerance_dof: tuple = (2.0, 2.0, 2.0, 5.0, 5.0, 5.0)
+    max_std_dof: tuple = (0.5, 0.5, 0.5, 2.0, 2.0, 2.0)
+
+
+@dataclass
+class Quality:
+    """The verdict: ``ok`` or the reason for refusing."""
+
+    ok: bool
+    reason: str = ""
+    rms_px: float = math.nan
+    ambiguity_ratio: float = math.nan
+
+    def to_dict(self) -> dict:
+        return {"ok": self.ok, "reason": self.reason, "rms_residual_px": _f(self.rms_px),
+                "ambiguity_ratio": _f(self.ambiguity_ratio)}
+
+
+@dataclass
+class Measurement:
+    """Result of :func:`measure`.
+
+    Attributes
+    ----------
+    method : the pose method.
+    pose : the estimated pose (None when there is none; check ``quality.ok`` before use).
+    std_dof : (6,) standard deviations of alpha, beta, gamma [deg], X, Y, Z [mm].
+    quality : the verdict.
+    corners_px : (20, 2) detected corners, contour order, observed pixels (None if not found).
+    features : everything the image processing found (None if it failed).
+    estimate : the method's raw answer.
+    timings_ms : wall time per stage.
+    """
+
+    method: str
+    pose: Pose | None
+    std_dof: np.ndarray
+    quality: Quality
+    corners_px: np.ndarray | None = None
+    features: Features | None = None
+    estimate: PoseEstimate | None = None
+    timings_ms: dict = field(default_factory=dict)
+
+    @property
+    def ok(self) -> bool:
+        return self.quality.ok
+
+    def to_dict(self) -> dict:
+        """The JSON object of ``cutterpose measure --json``."""
+        d = {"method": self.method, "quality": self.quality.to_dict(),
+             "pose": self.pose.to_dict() | {"frames": {"to": self.pose.to_frame,
+                                                        "from": self.pose.from_frame}}
+             if self.pose is not None else None,
+             "std": {k: _f(v) for k, v in zip(DOF_NAMES, self.std_dof)},
+             "corners_px": None if self.corners_px is None else self.corners_px.tolist(),
+             "timings_ms": {k: round(float(v), 3) for k, v in self.timings_ms.items()}}
+        if self.features is not None:
+            f = self.features
+            d["features"] = {"roi_px": list(f.roi), "roi_score": round(f.roi_score, 4),
+                             "threshold": f.threshold, "refined": f.refined,
+                             "n_segments": len(f.segments)}
+        return d
+
+
+def _f(x):
+    return None if x is None or not math.isfinite(float(x)) else float(x)
+
+
+# ------------------------------------------------------------------------------------------
+def order_for_model(corners_px: np.ndarray, camera: Camera, holder: Holder) -> np.ndarray:
+    """Reorder corners from contour order (unknown start and direction) to ``holder.json``
+    order, from the image alone (module doc).
+
+    Returns
+    -------
+    (N, 2) the same corners, ``out[i]`` the image of model corner ``i``.
+    """
+    c = np.asarray(corners_px, float)
+    nominal = camera.project(Pose.nominal().apply(holder.points_holder_mm))
+
+    def area(p):
+        return np.dot(p[:, 0], np.roll(p[:, 1], -1)) - np.dot(np.roll(p[:, 0], -1), p[:, 1])
+
+    if np.sign(area(c)) != np.sign(area(nominal)):
+        c = c[::-1]
+    e_det = np.roll(c, -1, axis=0) - c
+    e_nom = np.roll(nominal, -1, axis=0) - nominal
+    e_det = e_det / np.linalg.norm(e_det, axis=1).sum()
+    e_nom = e_nom / np.linalg.norm(e_nom, axis=1).sum()
+    n = len(c)
+    cost = [np.sum((np.roll(e_det, -k, axis=0) - e_nom) ** 2) for k in range(n)]
+    return np.roll(c, -int(np.argmin(cost)), axis=0)
+
+
+def _match_to_projection(ideal: np.ndarray, proj: np.ndarray) -> np.ndarray:
+    """Detected ideal corners reordered (cyclic shift and direction) to best fit ``proj``."""
+    best, best_cost = ideal, np.inf
+    for seq in (ideal, ideal[::-1]):
+        for k in range(len(seq)):
+            cand = np.roll(seq, -k, axis=0)
+            cost = np.sum((cand - proj) ** 2)
+            if cost < best_cost:
+                best, best_cost = cand, cost
+    return best
+
+
+def _project_ideal(dof: np.ndarray, camera: Camera, holder: Holder) -> np.ndarray:
+    R = rotation_from_euler_deg(*dof[:3])
+    X = holder.points_holder_mm @ R.T + dof[3:]
+    x = X[:, :2] / X[:, 2:3]
+    K = camera.K
+    return x @ K[:2, :2].T + K[:2, 2]
+
+
+def pose_std(pose: Pose, corners_ideal_px: np.ndarray, camera: Camera, holder: Holder
+             ) -> tuple[np.ndarray, np.ndarray]:
+    """Per-DOF standard deviations from the residuals, ``s^2 (J^T J)^-1`` (module doc).
+
+    Returns
+    -------
+    std : (6,) deg and mm.
+    residuals : (N, 2) detected minus projected ideal pixels, model order.
+    """
+    dof = pose.dof
+    proj = _project_ideal(dof, camera, holder)
+    det = _match_to_projection(np.asarray(corners_ideal_px, float), proj)
+    r = (det - proj)
+    h = np.array([1e-4, 1e-4, 1e-4, 1e-3, 1e-3, 1e-3])
+    J = np.empty((r.size, 6))
+    for k in range(6):
+        dp = np.zeros(6)
+        dp[k] = h[k]
+        J[:, k] = ((_project_ideal(dof + dp, camera, holder)
+                    - _project_ideal(dof - dp, camera, holder)) / (2 * h[k])).ravel()
+    dof_free = r.size - 6
+    s2 = float(np.sum(r ** 2)) / max(dof_free, 1)
+    try:
+        cov = s2 * np.linalg.inv(J.T @ J)
+        std = np.sqrt(np.clip(np.diag(cov), 0, None))
+    except np.linalg.LinAlgError:
+        std = np.full(6, np.nan)
+    return std, r
+
+
+def _solve(method: str, corners_px: np.ndarray, camera: Camera, holder: Holder,
+           limits: QualityLimits) -> PoseEstimate:
+    m = get_method(method)
+    if m.needs_correspondences:
+        return m.solve(order_for_model(corners_px, camera, holder), camera, holder)
+    if method in ("dm", "dm+"):
+        # the registered dm searches the synthetic range; images come from the real rig's
+        from . import matching, vanishing
+
+        t0 = time.perf_counter()
+        rng = vanishing.MotionRange(center_dof=limits.range_center_dof,
+                                    half_width_dof=limits.range_half_width_dof)
+        init = vanishing.initial_pose(corners_px, camera, holder)
+        if not init:
+            return PoseEstimate.failure(method, f"initial pose: {init.reason}")
+        est = matching.distance_match(corners_px, camera, holder, init, motion_range=rng,
+                                      refine=method == "dm+")
+        est.method = method
+        est.time_ms = (time.perf_counter() - t0) * 1e3
+        return est
+    return m.solve(corners_px, camera, holder)
+
+
+def ambiguity_ratio(est: PoseEstimate, corners_ideal_px, camera: Camera, holder: Holder,
+                    min_rotation_deg: float = 1.0) -> float:
+    """RMS residual of the best pose over that of the best *different* candidate (rotation
+    at least ``min_rotation_deg`` away; the planar two-fold ambiguity); NaN without one."""
+    from .pose import geodesic_deg
+
+    if not est or not est.candidates:
+        return math.nan
+    R0 = est.R_cam_holder
+    others = [(R, t) for R, t in est.candidates
+              if geodesic_deg(R0, np.asarray(R, float)) > min_rotation_deg]
+    if not others:
+        return math.nan
+
+    def rms(R, t):
+        dof = Pose(np.asarray(R, float), np.asarray(t, float).reshape(3)).dof
+        proj = _project_ideal(dof, camera, holder)
+        det = _match_to_projection(np.asarray(corners_ideal_px, float), proj)
+        return float(np.sqrt(np.mean(np.sum((det - proj) ** 2, axis=1))))
+
+    e0 = rms(R0, est.t_cam_holder_mm)
+    e1 = min(rms(R, t) for R, t in others)
+    return e0 / e1 if e1 > 0 else 1.0
+
+
+def _verdict(est: PoseEstimate, std, r, limits: QualityLimits, amb: float = math.nan
+             ) -> Quality:
+    if est is None or not est:
+        return Quality(False, f"no pose: {est.reason if est is not None else 'not solved'}",
+                       ambiguity_ratio=amb)
+    rms = float(np.sqrt(np.mean(np.sum(r ** 2, axis=1))))
+    q = Quality(True, "", rms, amb)
+    dof = Pose(est.R_cam_holder, est.t_cam_holder_mm).dof
+    lo = np.subtract(limits.range_center_dof, limits.range_half_width_dof)
+    hi = np.add(limits.range_center_dof, limits.range_half_width_dof)
+    tol = np.asarray(limits.range_tolerance_dof)
+    out = (dof < lo - tol) | (dof > hi + tol)
+    worst = float(np.sqrt(np.sum(r ** 2, axis=1)).max())
+    if rms > limits.max_rms_px:
+        q.ok, q.reason = False, (f"corner residual RMS {rms:.2f} px > {limits.max_rms_px} px: "
+                                 "the corners do not fit the holder model")
+    elif worst > limits.max_corner_residual_px:
+        q.ok, q.reason = False, (f"a corner is {worst:.2f} px off the model (> "
+                                 f"{limits.max_corner_residual_px} px)")
+    elif out.any():
+        names = [f"{DOF_NAMES[k]}={dof[k]:.1f}" for k in np.nonzero(out)[0]]
+        q.ok, q.reason = False, f"pose outside the working range: {', '.join(names)}"
+    elif math.isfinite(amb) and amb > limits.max_ambiguity_ratio:
+        q.ok, q.reason = False, (f"planar ambiguity: a second pose fits almost as well (ratio "
+                                 f"{amb:.2f} > {limits.max_ambiguity_ratio})")
+    elif not np.all(np.isfinite(std)) or np.any(std > np.asarray(limits.max_std_dof)):
+        q.ok, q.reason = False, f"pose too uncertain: std {np.round(std, 3).tolist()}"
+    return q
+
+
+def measure_features(features: Features, camera: Camera, holder: Holder, method: str = "dm+",
+                     limits: QualityLimits | None = None) -> Measurement:
+    """Pose, std and verdict from already detected features (one image, several methods)."""
+    limits = limits or QualityLimits()
+    timings = dict(features.timings_ms)
+    t0 = time.perf_counter()
+    try:
+        est = _solve(method, features.corners_px, camera, holder, limits)
+    except CutterposeError as e:
+        est = PoseEstimate.failure(method, f"{type(e).__name__}: {e}")
+    timings["solve"] = (time.perf_counter() - t0) * 1e3
+    t0 = time.perf_counter()
+    std = np.full(6, np.nan)
+    r = np.zeros((0, 2))
+    pose = None
+    if est:
+        pose = Pose(est.R_cam_holder, est.t_cam_holder_mm)
+        std, r = pose_std(pose, features.corners_ideal_px, camera, holder)
+    amb = ambiguity_ratio(est, features.corners_ideal_px, camera, holder)
+    q = _verdict(est, std, r, limits, amb)
+    timings["quality"] = (time.perf_counter() - t0) * 1e3
+    return Measurement(method, pose, std, q, features.corners_px, features, est, timings)
+
+
+def measure(image, camera: Camera | None = None, holder: Holder | None = None,
+            method: str = "dm+", params: FeatureParams | None = None,
+            limits: QualityLimits | None = None) -> Measurement:
+    """Measure the holder's pose in one image.
+
+    Parameters
+    ----------
+    image : path of an image file, or a grey/colour array of the camera's size.
+    camera, holder : defaults: the Table 1 camera and ``holder.json``.
+    method : a registered pose method (``dm+`` by default).
+    params : image processing parameters (the paper's by default).
+    limits : when to refuse a pose.
+
+    Returns
+    -------
+    Measurement : never marked ok unless the verdict accepts it; a failure of the image
+        processing (no holder, cut contour, wrong segment count...) gives ``ok = False`` with
+        the reason and no pose.
+
+    Raises
+    ------
+    ImageError
+        The file is missing or not an image; the image has the wrong size, or is black,
+        saturated or uniform.
+    InputError
+        Unknown method.
+    """
+    camera = camera or default_camera("table1")
+    holder = holder or default_holder()
+    get_method(method)  # unknown names fail before any work
+    t0 = time.perf_counter()
+    load_ms = 0.0
+    if isinstance(image, (str, Path)):
+        image = load_image(image)
+        load_ms = (time.perf_counter() - t0) * 1e3
+    try:
+        feats = detect_features(image, camera, holder, params)
+    except FeatureError as e:
+        timings = {"load": load_ms} if load_ms else {}
+        timings["total"] = (time.perf_counter() - t0) * 1e3
+        return Measurement(method, None, np.full(6, np.nan), Quality(False, str(e)),
+                           timings_ms=timings)
+    m = measure_features(feats, camera, holder, method, limits)
+    if load_ms:
+        m.timings_ms = {"load": load_ms} | m.timings_ms
+    m.timings_ms["total"] = (time.perf_counter() - t0) * 1e3
+    return m
+
+
+def demo(out_dir, method: str = "dm+", seed: int = 7) -> Measurement:
+    """The ``make demo`` example: render a seeded image of the holder (renderer, preset
+    "easy", Table 1 camera), measure it, write ``demo.png``, ``demo_overlay.png`` and
+    ``demo.json`` (with the true pose) into ``out_dir``."""
+    import cv2
+
+    from .overlay import write_overlay
+    from .render import render_holder
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    camera, holder = default_camera("table1"), default_holder()
+    truth = Pose.from_euler(2.0, -3.0, 4.0, 8.0, -6.0, 612.0)
+    r = render_holder(truth, camera, holder, "easy", seed=seed)
+    if not cv2.imwrite(str(out / "demo.png"), r.image):
+        raise ImageError(f"{out / 'demo.png'}: could not write the image")
+    m = measure(out / "demo.png", camera, holder, method)
+    write_overlay(r.image, m, camera, holder, out / "demo_overlay.png")
+    d = m.to_dict()
+    d["truth"] = truth.to_dict()
+    (out / "demo.json").write_text(json.dumps(d, indent=1))
+    return m
