@@ -165,9 +165,11 @@ def select(method: str, cands: list[Candidate], P, m, f_px: float) -> PoseEstima
     order = np.argsort(err, kind="stable")
     Rs, ts, err = Rs[order], ts[order], err[order]
     ratio = np.nan
-    # a second candidate counts only when it is a different pose, not a duplicate
-    diff = np.maximum(np.abs(Rs - Rs[0]).max(axis=(1, 2)), np.abs(ts - ts[0]).max(axis=1))
-    other = np.flatnonzero(diff > 1e-6)
+    # a second candidate counts only when it is a different pose, not the same minimum reached
+    # twice (iterative refiners stop ~1e-6 apart): 1e-4 rad / 1e-4 relative in t
+    dR = np.abs(Rs - Rs[0]).max(axis=(1, 2))
+    dt = np.linalg.norm(ts - ts[0], axis=1) / max(np.linalg.norm(ts[0]), 1e-12)
+    other = np.flatnonzero((dR > 1e-4) | (dt > 1e-4))
     if other.size:
         e2 = err[other[0]]
         ratio = err[0] / e2 if e2 > 0 else 1.0
