@@ -385,7 +385,8 @@ def refine_continuous(est: PoseEstimate, ideal_px: np.ndarray, camera: Camera, h
             return ((X @ K.T)[:, :2] / X[:, 2:3] - target).ravel()
 
         res = least_squares(residuals, np.concatenate([np.zeros(3), t]), method="lm",
-                            x_scale=np.r_[1e-3, 1e-3, 1e-3, 1.0, 1.0, 1.0])
+                            x_scale=np.r_[1e-3, 1e-3, 1e-3, 1.0, 1.0, 1.0],
+                            xtol=1e-12, ftol=1e-12, gtol=1e-12)
         R = Rotation.from_rotvec(res.x[:3]).as_matrix() @ R
         t = res.x[3:]
         rms = float(np.sqrt(np.mean(res.fun ** 2 * 2)))  # per-point RMS (2 coordinates)
