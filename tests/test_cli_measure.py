@@ -1,0 +1,74 @@
+"""cutterpose measure: bad input gives a message and a non-zero exit code, never a traceback."""
+
+from __future__ import annotations
+
+import json
+
+import cv2
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from cutterpose.camera import save_camera
+from cutterpose.cli import app
+from cutterpose.holder import default_holder
+from cutterpose.pose import Pose
+from cutterpose.render import render_holder
+from test_features import small_camera
+
+runner = CliRunner()
+
+
+@pytest.fixture(scope="module")
+def files(tmp_path_factory):
+    d = tmp_path_factory.mktemp("measure")
+    cam = small_camera()
+    save_camera(cam, d / "cam.json")
+    good = render_holder(Pose.from_euler(1, 2, -3, 4, -5, 605), cam, default_holder(), "easy",
+                         seed=2).image
+    cv2.imwrite(str(d / "good.png"), good)
+    h, w = good.shape
+    cv2.imwrite(str(d / "wrong_size.png"), good[:, : w - 8])
+    cv2.imwrite(str(d / "black.png"), np.zeros_like(good))
+    cv2.imwrite(str(d / "saturated.png"), np.full_like(good, 255))
+    rng = np.random.default_rng(0)
+    cv2.imwrite(str(d / "no_holder.png"), cv2.GaussianBlur(
+        rng.integers(0, 256, good.shape, dtype=np.uint8), (0, 0), 3))
+    half = np.roll(good, -int(0.42 * w), axis=1)
+    half[:, -int(0.42 * w):] = 20
+    cv2.imwrite(str(d / "half_out.png"), half)
+    (d / "text.png").write_text("not an image")
+    data = (d / "good.png").read_bytes()
+    (d / "truncated.png").write_bytes(data[: len(data) // 2])
+    return d
+
+
+def _run(*args):
+    return runner.invoke(app, ["measure", *map(str, args)])
+
+
+@pytest.mark.parametrize("name,words", [
+    ("missing.png", "not found"), ("text.png", "not a readable image"),
+    ("truncated.png", "image"), ("wrong_size.png", "camera model"), ("black.png", "black"),
+    ("saturated.png", "saturated"), ("no_holder.png", "refused"), ("half_out.png", "refused"),
+])
+def test_bad_input_clear_message_nonzero_exit(files, name, words):
+    res = _run(files / name, "--camera", files / "cam.json", "--method", "opencv-ippe-lm",
+               "--json")
+    assert res.exit_code != 0
+    assert res.exception is None or isinstance(res.exception, SystemExit)
+    assert "Traceback" not in res.output
+    assert words in res.output
+    if res.stdout.strip():  # --json: a refused pose is never marked good
+        assert json.loads(res.stdout.strip())["quality"]["ok"] is False
+
+
+def test_json_and_overlay(files, tmp_path):
+    res = _run(files / "good.png", "--camera", files / "cam.json", "--method", "opencv-ippe-lm",
+               "--json", "--overlay", tmp_path / "o.png")
+    assert res.exit_code == 0, res.output
+    d = json.loads(res.stdout.strip())
+    assert d["quality"]["ok"] is True
+    assert set(d["pose"]) >= {"alpha_deg", "X_mm", "R_cam_holder", "frames"}
+    assert len(d["corners_px"]) == 20 and d["std"]["Z_mm"] > 0
+    assert cv2.imread(str(tmp_path / "o.png")) is not None

@@ -1,0 +1,68 @@
+"""measure(): pose, per-DOF std, quality verdict; contour-order correspondences."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from cutterpose.holder import default_holder
+from cutterpose.pipeline import QualityLimits, measure, measure_features, order_for_model
+from cutterpose.pose import Pose, pose_errors
+from cutterpose.render import render_holder
+from test_features import small_camera
+
+TRUE = Pose.from_euler(-2, 3, -4, -6, 5, 590)
+
+
+@pytest.fixture(scope="module")
+def rendered():
+    cam = small_camera()
+    return cam, render_holder(TRUE, cam, default_holder(), "easy", seed=11)
+
+
+@pytest.mark.parametrize("method", ["opencv-ippe-lm", "dm+"])
+def test_measure_easy_image(rendered, method):
+    cam, r = rendered
+    m = measure(r.image, cam, default_holder(), method)
+    assert m.ok, m.quality.reason
+    e = pose_errors(TRUE.R, TRUE.t_mm, m.pose.R, m.pose.t_mm)
+    # a 4x reduced camera: errors scale up ~4x from the full-size targets
+    assert e.rot_deg[0] < 0.15 and e.trans_mm[0] < 1.5
+    assert np.all(np.isfinite(m.std_dof)) and np.all(m.std_dof > 0)
+    assert m.quality.rms_px < 0.5
+    d = m.to_dict()
+    assert d["quality"]["ok"] and len(d["corners_px"]) == 20 and "solve" in d["timings_ms"]
+
+
+def test_order_for_model_recovers_holder_order(rendered):
+    cam, r = rendered
+    true = r.corners_px
+    for shift in (0, 7, 13):
+        for seq in (true, true[::-1]):
+            got = order_for_model(np.roll(seq, shift, axis=0), cam, default_holder())
+            np.testing.assert_allclose(got, true)
+
+
+def test_verdict_refuses_outside_working_range_and_large_residual(rendered):
+    cam, r = rendered
+    from cutterpose.features import detect_features
+
+    f = detect_features(r.image, cam, default_holder())
+    narrow = QualityLimits(range_half_width_dof=(1, 1, 1, 2, 2, 2),
+                           range_tolerance_dof=(0, 0, 0, 0, 0, 0))
+    m = measure_features(f, cam, default_holder(), "opencv-ippe-lm", narrow)
+    assert not m.ok and "working range" in m.quality.reason
+    f.corners_px = f.corners_px.copy()
+    f.corners_ideal_px = f.corners_ideal_px.copy()
+    f.corners_ideal_px[3] += 6.0
+    f.corners_px[3] += 6.0
+    m = measure_features(f, cam, default_holder(), "opencv-ippe-lm")
+    assert not m.ok and "px" in m.quality.reason
+
+
+def test_measure_refuses_image_without_holder(rendered):
+    cam, r = rendered
+    rng = np.random.default_rng(1)
+    img = rng.integers(0, 256, r.image.shape, dtype=np.uint8)
+    m = measure(img, cam, default_holder(), "opencv-ippe-lm")
+    assert not m.ok and m.pose is None and "holder" in m.quality.reason
