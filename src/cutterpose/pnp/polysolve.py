@@ -216,6 +216,29 @@ class MacaulaySolver:
         _, _, piv = sla.qr(M[np.ix_(self._top_r, self._top_c)].T, pivoting=True,
                            check_finite=False)
         self._top_sel = np.sort(piv[: len(self._top_c)])
+        # scatter maps straight into the three blocks (no full matrix on the hot path)
+        r_top = np.isin(self._rows, self._top_r)
+        c_top = np.isin(self._cols, self._top_c)
+        r_loc = np.empty(self.shape[0], np.int64)
+        r_loc[self._top_r] = np.arange(len(self._top_r))
+        r_loc[self._low_r] = np.arange(len(self._low_r))
+        c_loc = np.empty(self.shape[1], np.int64)
+        c_loc[self._top_c] = np.arange(len(self._top_c))
+        c_loc[self._low_c] = np.arange(len(self._low_c))
+        self._blocks = {}
+        for name, sel in (("low", ~r_top), ("top_top", r_top & c_top),
+                          ("top_low", r_top & ~c_top)):
+            self._blocks[name] = (r_loc[self._rows[sel]], c_loc[self._cols[sel]],
+                                  self._src[sel])
+        self._block_shapes = {"low": (len(self._low_r), len(self._low_c)),
+                              "top_top": (len(self._top_r), len(self._top_c)),
+                              "top_low": (len(self._top_r), len(self._low_c))}
+
+    def _block(self, c_flat: np.ndarray, name: str) -> np.ndarray:
+        B = np.zeros(self._block_shapes[name])
+        r, col, src = self._blocks[name]
+        B[r, col] = c_flat[src]
+        return B
 
     def macaulay(self, coef: np.ndarray) -> np.ndarray:
         """The Macaulay matrix for coefficients ``(k, s)`` (each row scaled to unit norm)."""
@@ -239,9 +262,9 @@ class MacaulaySolver:
         (small means a clean null space of the expected dimension); ``info['top_residual']``
         the relative residual of the top rows.
         """
-        M = self.macaulay(coef)
+        c_flat = (coef / np.linalg.norm(coef, axis=1, keepdims=True)).ravel()
         N = self.n_solutions
-        M_low = M[np.ix_(self._low_r, self._low_c)]
+        M_low = self._block(c_flat, "low")
         rank = len(self._low_c) - N
         Q, Rm, _ = sla.qr(M_low.T, pivoting=True, mode="full", check_finite=False)
         d = np.abs(np.diag(Rm))
@@ -249,8 +272,8 @@ class MacaulaySolver:
         Z = np.zeros((self.shape[1], N))
         Z[self._low_c] = Q[:, rank:]
         if len(self._top_c):
-            A = M[np.ix_(self._top_r, self._top_c)]
-            rhs = -M[np.ix_(self._top_r, self._low_c)] @ Z[self._low_c]
+            A = self._block(c_flat, "top_top")
+            rhs = -self._block(c_flat, "top_low") @ Z[self._low_c]
             try:
                 z_top = sla.lu_solve(sla.lu_factor(A[self._top_sel], check_finite=False),
                                      rhs[self._top_sel], check_finite=False)
