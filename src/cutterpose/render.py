@@ -108,7 +108,7 @@ class RenderSettings:
     edge_wear_darkening: float = 0.7
     # occlusion: number of corners partly covered by a lump of muck in front of the holder
     occluded_corners: int = 0
-    occluder_radius_px: float = 90.0
+    occluder_radius_px: float = 55.0
     # optics and sensor
     defocus_sigma_px: float = 0.8
     defocus_kernel: str = "gaussian"  # or "disk" (radius = 2 sigma)
@@ -644,7 +644,7 @@ def _occlude(value: np.ndarray, corners_px: np.ndarray, settings: RenderSettings
         return []
     chosen = sorted(rng.choice(len(corners_px), size=min(n, len(corners_px)), replace=False))
     for ci in chosen:
-        r0 = settings.occluder_radius_px * rng.uniform(0.7, 1.3)
+        r0 = settings.occluder_radius_px * rng.uniform(0.7, 1.2)
         # centre offset so that the lump covers the corner but not all of its neighbourhood
         ang = rng.uniform(0, 2 * np.pi)
         c = corners_px[ci] + rng.uniform(0.4, 0.9) * r0 * np.array([np.cos(ang), np.sin(ang)])
