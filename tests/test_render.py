@@ -162,6 +162,19 @@ def test_pocket_depth_changes_only_the_pocket():
     assert np.all(dist > -0.5)  # inside, or within a pixel (antialiasing) of the contour
 
 
+def test_edge_wear_darkens_only_a_band_along_the_contour():
+    pose = Pose.from_euler(0.0, 0.0, 0.0, 0.0, 0.0, 600.0)
+    a = render_holder(pose, CAM, settings=CLEAN).image.astype(float)
+    b = render_holder(pose, CAM, settings=CLEAN.with_(edge_wear_mm=4.0)).image.astype(float)
+
+    def row_mean(img, y_mm):  # along the long edge y = -90 of the pocket, X in [-100, 100]
+        p = CAM.project(pose.apply([[x, y_mm, 0.0] for x in np.linspace(-100, 100, 50)]))
+        return np.mean([_bilinear(img, u, v) for u, v in p])
+
+    assert row_mean(b, -91.5) < 0.85 * row_mean(a, -91.5)  # 1.5 mm from the contour: worn
+    assert row_mean(b, -115.0) == pytest.approx(row_mean(a, -115.0), abs=0.5)  # 25 mm: not
+
+
 def test_camera_behind_the_holder_is_refused():
     with pytest.raises(InputError):
         render_holder(Pose.from_euler(180.0, 0, 0, 0, 0, 600), CAM)
