@@ -56,7 +56,6 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import least_squares
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
@@ -195,14 +194,16 @@ def sphere_directions(m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     for L in (L0, L1):
         _, V = np.linalg.eigh(L.T @ L)
         d.append(V[:, 0])
-    R0 = _rot_from_columns(d[0], d[1])
-
-    def residuals(w):
-        R = Rotation.from_rotvec(w).as_matrix() @ R0
-        return np.concatenate([L0 @ R[:, 0], L1 @ R[:, 1]])
-
-    res = least_squares(residuals, np.zeros(3), method="lm", xtol=1e-12, ftol=1e-12)
-    R = Rotation.from_rotvec(res.x).as_matrix() @ R0
+    R = _rot_from_columns(d[0], d[1])
+    # Gauss-Newton on R <- exp([w]x) R: d(l . R e_i) / dw = (R e_i) x l
+    for _ in range(20):
+        r1, r2 = R[:, 0], R[:, 1]
+        res = np.concatenate([L0 @ r1, L1 @ r2])
+        J = np.vstack([np.cross(r1, L0), np.cross(r2, L1)])
+        w = -np.linalg.lstsq(J, res, rcond=None)[0]
+        R = Rotation.from_rotvec(w).as_matrix() @ R
+        if np.linalg.norm(w) < 1e-13:
+            break
     return R[:, 0], R[:, 1]
 
 
