@@ -280,7 +280,7 @@ class MacaulaySolver:
                 res = np.linalg.norm(A @ z_top - rhs) / max(np.linalg.norm(rhs), 1e-300)
             except (np.linalg.LinAlgError, ValueError):
                 res = np.inf
-            if not res <= 1e-8:  # the generic row subset is singular here: least squares
+            if not res <= 1e-6:  # the generic row subset is singular here: least squares
                 z_top = np.linalg.lstsq(A, rhs, rcond=None)[0]
                 res = np.linalg.norm(A @ z_top - rhs) / max(np.linalg.norm(rhs), 1e-300)
             Z[self._top_c] = z_top
