@@ -359,7 +359,7 @@ def distance_match(points_px, camera: Camera, holder: Holder, initial,
     results = []
     for c in start_dof:
         if library is not None:
-            idx = library.window(c, coarse_radius)
+            idx = library.window(c, coarse_radius + 0.5)   # the grid nodes of a 3^6 block
             cand = np.concatenate([c[None], library.dof[idx]])
             d = dimg.sample(np.concatenate([project_templates(c[None], camera, holder),
                                             library.templates_px[idx]]))
