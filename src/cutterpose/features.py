@@ -98,6 +98,8 @@ class FeatureParams:
     border_margin_px: float = 3.0         #: a contour this close to the image border is cut
     max_corner_gap_px: float = 15.0       #: a corner farther than this from the contour is hidden
     max_family_spread_deg: float = 12.0   #: alternate lines (one holder direction) stay parallel
+    min_edge_support: float = 0.25        #: model fallback: share of an edge its gradient covers
+    model_fallback: str = "homography"    #: "none": no model-guided lines when segmentation fails
     band_only: bool = True                #: filter/threshold only tiles the edge passes through
     tile_px: int = 64                     #: tile size of the band (a multiple of roi_downscale)
 
@@ -155,6 +157,8 @@ class Features:
     roi_score : template matching score.
     threshold : the grey level used.
     timings_ms : wall time per stage.
+    segmentation : "contour" (the paper's segmentation gave the 20 segments) or "model" (the
+        fallback: lines from the holder model fitted to the contour, then refined).
     """
 
     corners_px: np.ndarray
@@ -170,6 +174,7 @@ class Features:
     threshold: int
     refined: bool
     timings_ms: dict = field(default_factory=dict)
+    segmentation: str = "contour"
 
 
 # ------------------------------------------------------------------------------------------
@@ -739,11 +744,12 @@ def detect_features(image: np.ndarray, camera: Camera, holder: Holder,
     n_expected = holder.n_corners
     levels = threshold_levels(small_sub, params)
     errors = []
+    contours = []  # (level, contour_px, contour_ideal) for the model-guided fallback
     for level in levels:
         try:
             binary = binarize(sub, small_sub, level, params)
             res = _contour_and_segments(binary, roi, image.shape, camera, level, n_expected,
-                                        params)
+                                        params, contours)
             segs = res[2]
             lines0, inward, spans = _initial_lines(res[1], segs)
             _check_corner_angles(lines0, params, segs)
@@ -752,27 +758,66 @@ def detect_features(image: np.ndarray, camera: Camera, holder: Holder,
         except FeatureError as e:
             errors.append((level, str(e)))
     else:
-        if len(errors) == 1:
-            raise FeatureError(errors[0][1])
-        raise FeatureError(" | ".join(f"threshold {lv}: {msg}" for lv, msg in errors))
+        res = None
     lap("threshold+contour+segments")
-    contour_px, contour_ideal, segs, prims = res
-    lines = lines0
-    edges: list = []
-    if params.refine:
-        lines, edges = refine_lines(sub, np.array([u0, v0], float), camera, lines0, spans,
-                                    inward, params)
-        lap("refine")
+    origin = np.array([u0, v0], float)
+    if res is not None:
+        contour_px, contour_ideal, segs, prims = res
+        lines = lines0
+        edges: list = []
+        if params.refine:
+            lines, edges = refine_lines(sub, origin, camera, lines0, spans, inward, params)
+            lap("refine")
+        corners_ideal, corners_px = _corners(lines, camera)
+        try:
+            _check_corners_on_contour(corners_ideal, corners_px, contour_ideal, params)
+            lap("corners")
+            return Features(corners_px=corners_px, corners_ideal_px=corners_ideal,
+                            lines_ideal=lines, lines_threshold_ideal=lines0, segments=segs,
+                            primitives=prims, contour_px=contour_px, edge_points_px=edges,
+                            roi=roi, roi_score=score, threshold=int(level),
+                            refined=params.refine, timings_ms=timings)
+        except FeatureError as e:  # a hidden corner: the model fit may still see its lines
+            msg = str(e)
+    else:
+        msg = (errors[0][1] if len(errors) == 1
+               else " | ".join(f"threshold {lv}: {m}" for lv, m in errors))
+    if params.model_fallback == "none" or not contours or not params.refine:
+        raise FeatureError(msg)
+    # the paper's segmentation failed: lines from the model fitted to the contour
+    try:
+        level, contour_px, contour_ideal, segs, lines0, inward, spans, _ = \
+            _model_features(contours, sub, roi, camera, holder, params)
+        lap("model fit")
+        lines, edges = refine_lines(sub, origin, camera, lines0, spans, inward, params)
+        lap("model refine")
+        corners_ideal, corners_px = _corners(lines, camera)
+        # corners may be hidden: the lines must instead rest on the edges' gradient, and the
+        # corners stay near the fitted model's (a line that jumped to another edge does not)
+        _check_edge_support(lines, edges, spans, camera, params)
+        gap = np.linalg.norm(corners_ideal - intersect_consecutive(lines0), axis=1)
+        if gap.max() > params.max_corner_gap_px:
+            k = int(np.argmax(gap))
+            raise FeatureError(f"corner near {_where(corners_px[k])} px moved {gap[k]:.0f} px "
+                               "from the model fitted to the contour: an edge is not the "
+                               "holder's")
+    except FeatureError as e:
+        raise FeatureError(f"{msg} | model fit: {e}") from None
+    lap("corners")
+    return Features(corners_px=corners_px, corners_ideal_px=corners_ideal, lines_ideal=lines,
+                    lines_threshold_ideal=lines0, segments=segs, primitives=[],
+                    contour_px=contour_px, edge_points_px=edges, roi=roi, roi_score=score,
+                    threshold=int(level), refined=True, timings_ms=timings,
+                    segmentation="model")
+
+
+def _corners(lines, camera: Camera):
+    """Corners of consecutive lines, ideal and observed pixels."""
     corners_ideal = intersect_consecutive(lines)
     corners_px = camera.distort_px(corners_ideal)
     if not np.all(np.isfinite(corners_px)):
         raise FeatureError("consecutive characteristic lines do not intersect")
-    _check_corners_on_contour(corners_ideal, corners_px, contour_ideal, params)
-    lap("corners")
-    return Features(corners_px=corners_px, corners_ideal_px=corners_ideal, lines_ideal=lines,
-                    lines_threshold_ideal=lines0, segments=segs, primitives=prims,
-                    contour_px=contour_px, edge_points_px=edges, roi=roi, roi_score=score,
-                    threshold=int(level), refined=params.refine, timings_ms=timings)
+    return corners_ideal, corners_px
 
 
 def threshold_levels(small_sub: np.ndarray, params: FeatureParams) -> list[int]:
@@ -822,7 +867,8 @@ def _where(p) -> str:
     return f"({p[0]:.0f}, {p[1]:.0f})"
 
 
-def _contour_and_segments(binary, roi, shape, camera, level, n_expected, params):
+def _contour_and_segments(binary, roi, shape, camera, level, n_expected, params,
+                          contours: list | None = None):
     u0, v0, u1, v1 = roi
     c = inside_contour(binary)
     if c is None:
@@ -839,6 +885,8 @@ def _contour_and_segments(binary, roi, shape, camera, level, n_expected, params)
         raise FeatureError(f"the holder is partly out of view: its inside contour touches the "
                            f"image border near {_where(p)} px")
     contour_ideal = camera.undistort_px(contour_px)
+    if contours is not None:
+        contours.append((level, contour_px, contour_ideal))
     prims = segment_contour(contour_ideal, params)
     lines = [s for s in prims if s.kind == "line" and s.length_px >= params.min_segment_px]
     segs = _merge_collinear(lines, params)
@@ -924,3 +972,175 @@ def _check_corner_angles(lines, params, segs):
             f"characteristic segments {k} and {(k + 1) % len(lines)} are nearly parallel "
             f"(they meet at {np.degrees(np.arccos(min(1.0, cosang[k]))):.0f} deg): a segment is "
             f"missing near {_where(segs[k].points_ideal_px[-1])} ideal px")
+
+
+# ------------------------------------------------------------------------------------------
+# model-guided fallback (beyond the paper)
+def _homography_nominal(camera: Camera, holder: Holder) -> np.ndarray:
+    """Homography holder plane (mm) -> ideal pixels at the nominal pose."""
+    R, t = Pose.nominal().R, Pose.nominal().t_mm
+    return camera.K @ np.column_stack([R[:, 0], R[:, 1], t])
+
+
+def _apply_h(H: np.ndarray, p: np.ndarray) -> np.ndarray:
+    q = np.column_stack([p, np.ones(len(p))]) @ H.T
+    return q[:, :2] / q[:, 2:3]
+
+
+def _moments(p: np.ndarray):
+    m = cv2.moments(p.astype(np.float32).reshape(-1, 1, 2))
+    if abs(m["m00"]) < 1e-9:
+        return None
+    c = np.array([m["m10"], m["m01"]]) / m["m00"]
+    theta = 0.5 * np.arctan2(2 * m["mu11"], m["mu20"] - m["mu02"])
+    return abs(m["m00"]), c, theta
+
+
+def _fit_h_lines(model_lines, pts, w):
+    """Homography H (plane -> image) with each image point ``pts[i]`` on the plane line
+    ``model_lines[i]``: ``l^T H^-1 p = 0`` is linear in ``G = H^-1``; weighted SVD on
+    normalised pixels."""
+    c = pts.mean(axis=0)
+    s = np.sqrt(2) / max(np.sqrt(((pts - c) ** 2).sum(axis=1)).mean(), 1e-9)
+    T = np.array([[s, 0, -s * c[0]], [0, s, -s * c[1]], [0, 0, 1.0]])
+    ph = np.column_stack([(pts - c) * s, np.ones(len(pts))])
+    A = (model_lines[:, :, None] * ph[:, None, :]).reshape(len(pts), 9) * w[:, None]
+    _, v = np.linalg.eigh(A.T @ A)  # 9 x 9: much cheaper than the SVD of A
+    G = v[:, 0].reshape(3, 3) @ T
+    H = np.linalg.inv(G)
+    return H / H[2, 2]
+
+
+def _edge_distances(H, model, pts):
+    """Distance of each point to each projected model edge (segment), (M, N)."""
+    C = _apply_h(H, model)
+    a, d = C, np.roll(C, -1, axis=0) - C
+    tt = np.clip(((pts[:, None, :] - a[None]) * d[None]).sum(axis=2) / (d ** 2).sum(axis=1),
+                 0, 1)
+    return np.linalg.norm(pts[:, None, :] - (a[None] + tt[..., None] * d[None]), axis=2)
+
+
+def fit_model_to_contour(contour_ideal: np.ndarray, camera: Camera, holder: Holder,
+                         gates_px=(40.0, 20.0, 10.0, 6.0, 4.0, 4.0)):
+    """Fit the holder's inner contour (a plane polygon) to an image contour by a homography.
+
+    Initial guess: the nominal projection moved, turned and scaled onto the contour's centroid,
+    principal axis and area (image moments). Then closest-edge assignment (ICP) with a
+    shrinking gate, each time a Huber-weighted fit of the points to their model lines
+    (:func:`_fit_h_lines`, a few reweighting steps).
+
+    Returns
+    -------
+    H : (3, 3) homography holder plane (mm) -> ideal pixels.
+    assign : (M,) index of the model edge each contour point is closest to.
+    dist : (M,) its distance to that edge (ideal px).
+    """
+    model = np.asarray(holder.corners_mm, float)
+    lines = holder.edge_lines
+    H0 = _homography_nominal(camera, holder)
+    mi, mn = _moments(contour_ideal), _moments(_apply_h(H0, model))
+    if mi is None or mn is None:
+        raise FeatureError("the inside contour encloses no area")
+    (ai, ci, ti), (an, cn, tn) = mi, mn
+    dt = (ti - tn + np.pi / 2) % np.pi - np.pi / 2  # the axis is known up to 180 deg
+    s = np.sqrt(ai / an)
+    cs, sn = s * np.cos(dt), s * np.sin(dt)
+    S = np.array([[cs, -sn, 0], [sn, cs, 0], [0, 0, 1.0]])
+    S[:2, 2] = ci - S[:2, :2] @ cn
+    H = S @ H0
+    H = H / H[2, 2]
+    pts = np.asarray(contour_ideal, float)
+    for gate in gates_px:
+        D = _edge_distances(H, model, pts)
+        assign = np.argmin(D, axis=1)
+        dist = D[np.arange(len(pts)), assign]
+        use = dist < gate
+        if use.sum() < 16:
+            raise FeatureError("the inside contour does not resemble the holder's pocket")
+        p, ln = pts[use], lines[assign[use]]
+        w = np.ones(len(p))
+        for _ in range(3):
+            H = _fit_h_lines(ln, p, w)
+            # geometric residual: plane distance (mm) times the local scale (px / mm)
+            q = np.column_stack([p, np.ones(len(p))]) @ np.linalg.inv(H).T
+            r_mm = (ln * q).sum(axis=1) / q[:, 2]
+            r = r_mm * np.sqrt(abs(np.linalg.det(H[:2, :2])))
+            k = max(1.0, gate / 4)
+            w = np.where(np.abs(r) <= k, 1.0, k / np.maximum(np.abs(r), 1e-12)) / np.abs(q[:, 2])
+    D = _edge_distances(H, model, pts)
+    assign = np.argmin(D, axis=1)
+    return H, assign, D[np.arange(len(pts)), assign]
+
+
+def _model_features(contours: list, sub, roi, camera: Camera, holder: Holder,
+                    params: FeatureParams):
+    """Lines of the holder's 20 edges from the model fitted to the thresholded contour, then the
+    gradient refinement; the fallback when the paper's segmentation does not give the 20
+    characteristic segments (worn, chipped or stained edges, occluded corners).
+
+    ``contours``: (level, contour_px, contour_ideal) of each threshold tried. The one whose fit
+    covers most of the model's perimeter is used. Returns what :func:`detect_features` needs.
+    """
+    model = np.asarray(holder.corners_mm, float)
+    n = len(model)
+    tol = params.line_tol_px
+    best = None
+    perimeter = np.linalg.norm(np.diff(_apply_h(_homography_nominal(camera, holder), model),
+                                       axis=0, append=np.nan), axis=1)
+    perimeter = float(np.nansum(perimeter))
+    for level, cpx, cid in contours:
+        if len(cid) < 0.5 * perimeter:  # a stain's hole, not the pocket
+            continue
+        try:
+            H, assign, dist = fit_model_to_contour(cid, camera, holder)
+        except (FeatureError, np.linalg.LinAlgError, ValueError):
+            continue
+        C = _apply_h(H, model)
+        lengths = np.linalg.norm(np.roll(C, -1, axis=0) - C, axis=1)
+        inl = np.abs(dist) < tol
+        covered = np.bincount(assign[inl], minlength=n)[:n]
+        # coverage: contour points (about 1 per px) on an edge, over its length
+        score = float(np.minimum(covered / np.maximum(lengths, 1), 1.0) @ lengths
+                      / lengths.sum())
+        if best is None or score > best[0]:
+            best = (score, level, cpx, cid, H, assign, inl, C)
+    if best is None:
+        raise FeatureError("the model of the pocket could not be fitted to any inside contour")
+    score, level, cpx, cid, H, assign, inl, C = best
+    if score < 0.5:
+        raise FeatureError(f"only {100 * score:.0f} % of the pocket's outline found on the "
+                           f"best contour (threshold {level}): holder hidden or not in view")
+    sign = np.sign(_signed_area(C))
+    segs, lines0, inward, spans = [], np.zeros((n, 3)), np.zeros((n, 2)), []
+    margin = params.refine_half_width_px
+    for k in range(n):
+        a, b = C[k], C[(k + 1) % n]
+        L = float(np.linalg.norm(b - a))
+        d = (b - a) / L
+        n_in = sign * np.array([-d[1], d[0]])
+        lines0[k] = _line_from(a, n_in)
+        inward[k] = n_in
+        spans.append((margin, L - margin, a, d))
+        idx = np.nonzero((assign == k) & inl)[0]
+        segs.append(Segment("line", int(idx.min()) if len(idx) else 0,
+                            int(idx.max()) + 1 if len(idx) else 0, cid[idx], float(len(idx))))
+    return level, cpx, cid, segs, lines0, inward, spans, score
+
+
+def _check_edge_support(lines, edges, spans, camera, params):
+    """Each refined line must rest on gradient edge points along a good part of its length
+    (a hidden or broken edge gives few, scattered points)."""
+    for k, (L, e, sp) in enumerate(zip(lines, edges, spans)):
+        length = max(sp[1] - sp[0] - 2 * params.refine_trim_px, 1.0)
+        if len(e):
+            r = np.abs(camera.undistort_px(e) @ L[:2] + L[2])
+            support = float((r < 1.0).sum()) * params.refine_step_px / length
+        else:
+            support = 0.0
+        min_fraction = params.min_edge_support
+        if support < min_fraction:
+            mid = camera.distort_px((sp[2] + 0.5 * (sp[0] + sp[1]) * sp[3])[None])[0]
+            raise FeatureError(
+                f"edge {k} near {_where(mid)} px: gradient edge found along only "
+                f"{100 * support:.0f} % of it (< {100 * min_fraction:.0f} %): occluded or "
+                "damaged")

@@ -357,10 +357,11 @@ def measure(image, camera: Camera | None = None, holder: Holder | None = None,
     return m
 
 
-def demo(out_dir, method: str = "dm+", seed: int = 7) -> Measurement:
+def demo(out_dir, method: str = "dm+", seed: int = 7, echo=print) -> Measurement:
     """The ``make demo`` example: render a seeded image of the holder (renderer, preset
     "easy", Table 1 camera), measure it, write ``demo.png``, ``demo_overlay.png`` and
-    ``demo.json`` (with the true pose) into ``out_dir``."""
+    ``demo.json`` (with the true pose) into ``out_dir``, and report through ``echo`` (None:
+    silent) the measured pose, its std, the true pose, the error and the time per stage."""
     import cv2
 
     from .overlay import write_overlay
@@ -378,4 +379,25 @@ def demo(out_dir, method: str = "dm+", seed: int = 7) -> Measurement:
     d = m.to_dict()
     d["truth"] = truth.to_dict()
     (out / "demo.json").write_text(json.dumps(d, indent=1))
+    if echo is not None:
+        echo(_demo_report(m, truth, out))
     return m
+
+
+def _demo_report(m: Measurement, truth: Pose, out: Path) -> str:
+    names = ("alpha deg", "beta deg", "gamma deg", "X mm", "Y mm", "Z mm")
+    lines = [f"demo image {out / 'demo.png'} (rendered, preset easy), method {m.method}: "
+             + ("OK" if m.ok else f"REFUSED: {m.quality.reason}")]
+    if m.pose is not None:
+        est, tru = m.pose.dof, truth.dof
+        err = est - tru
+        err[:3] = (err[:3] + 180.0) % 360.0 - 180.0
+        lines.append(f"{'':10s} {'measured':>10s} {'std':>8s} {'true':>10s} {'error':>9s}")
+        for k, n in enumerate(names):
+            lines.append(f"{n:10s} {est[k]:10.4f} {m.std_dof[k]:8.4f} {tru[k]:10.4f} "
+                         f"{err[k]:9.4f}")
+        lines.append(f"RMS corner residual {m.quality.rms_px:.3f} px")
+    lines.append("time per stage (ms): " + ", ".join(
+        f"{k} {v:.0f}" for k, v in m.timings_ms.items()))
+    lines.append(f"wrote {out / 'demo_overlay.png'} and {out / 'demo.json'}")
+    return "\n".join(lines)

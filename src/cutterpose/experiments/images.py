@@ -11,7 +11,8 @@ verdict refuses, or an image the image processing rejects, is a failed row with 
 Outputs in ``out``: ``trials.csv`` (protocol columns, ``sigma_px`` empty), ``summary.md`` /
 ``summary.json`` (the shared report writers), ``corners.csv`` (per image: difficulty, RMS of the
 detected corners against the true ones with and without the gradient refinement, threshold
-used) and ``failures.csv`` (trial, method, reason).
+used, segmentation: the paper's ``contour`` or the model-guided fallback ``model``) and
+``failures.csv`` (trial, method, reason).
 """
 
 from __future__ import annotations
@@ -80,8 +81,8 @@ def _one_image(args):
     t = np.asarray(entry["t_cam_holder_mm"], float)
     out = {"trial": i, "rows": [], "failures": [], "corners": None}
     info = {"trial": i, "file": entry["file"], "difficulty": entry.get("difficulty", ""),
-            "threshold": "", "rms_refined_px": math.nan, "rms_threshold_px": math.nan,
-            "reason": ""}
+            "threshold": "", "segmentation": "", "rms_refined_px": math.nan,
+            "rms_threshold_px": math.nan, "reason": ""}
     nan_R, nan_t = np.full((3, 3), np.nan), np.full(3, np.nan)
 
     def all_failed(reason):
@@ -98,6 +99,7 @@ def _one_image(args):
         all_failed(f"{type(e).__name__}: {e}")
         return out
     info["threshold"] = feats.threshold
+    info["segmentation"] = feats.segmentation
     if entry.get("corners_px") is not None:
         true_px = np.asarray(entry["corners_px"], float)
         info["rms_refined_px"] = corner_rms(feats.corners_px, true_px)
@@ -163,8 +165,8 @@ def run_images(folder, methods: list[str], out, workers: int = 1, params=None,
         w.writerow(["trial", "method", "reason"])
         for res in results:
             w.writerows(res["failures"])
-    cols = ["trial", "file", "difficulty", "threshold", "rms_refined_px", "rms_threshold_px",
-            "reason"]
+    cols = ["trial", "file", "difficulty", "threshold", "segmentation", "rms_refined_px",
+            "rms_threshold_px", "reason"]
     with open(out / "corners.csv", "w", newline="") as fh:
         w = csv.DictWriter(fh, cols)
         w.writeheader()
