@@ -232,3 +232,20 @@ def test_global_minimum_never_above_multistart():
         assert o["n"] == 30
         assert o["worse"] == 0, (name, o)
         assert o["missed_instances"] == 0, (name, o)
+
+
+@pytest.mark.parametrize("name", list(SOLVERS))
+def test_half_turns_exercise_every_aspnp_case(name):
+    """180 deg about x, y, z lie in ASPnP's cases 2, 3, 4 (a = 0); 179.99 deg about (1,1,1) is
+    case 1 with huge (b, c, d). Both solvers must recover them exactly."""
+    rng = np.random.default_rng(12)
+    P = rng.uniform(-100, 100, (20, 3))
+    t = np.array([0.0, 0.0, 600.0])
+    for axis, ang in (((1, 0, 0), 180.0), ((0, 1, 0), 180.0), ((0, 0, 1), 180.0),
+                      ((1, 1, 1), 179.99)):
+        ax = np.array(axis, float) / np.linalg.norm(axis)
+        q = np.r_[np.cos(np.radians(ang) / 2), np.sin(np.radians(ang) / 2) * ax]
+        R = aspnp.rbar(q)
+        est = SOLVERS[name](CAM.project(P @ R.T + t), CAM, P)
+        e = pose_errors(R, t, est.R_cam_holder, est.t_cam_holder_mm)
+        assert e.rot_deg[0] < 1e-6 and e.trans_mm[0] < 1e-6
