@@ -286,3 +286,77 @@ def test_planar_points_behind_camera_give_the_twin(name, cam_syn, holder):
     est = _solve(name, _behind(cam_syn, P, R, t), cam_syn, P)
     e = _err(est, R @ np.diag([-1.0, -1.0, 1.0]), -t)
     assert e[0] < 1e-6 and e[1] < 1e-6
+
+
+# --- speed rewrites (issue 3): the fast paths compute what the plain formulas compute ---------
+
+
+def test_model_cache_follows_the_array_contents(cam_syn, holder):
+    """Per-model caches are keyed on the points' bytes: a different (or edited) model array with
+    the same shape never reuses another model's plane frame / control points."""
+    from cutterpose.pnp.base import model_cache
+
+    P = holder.points_holder_mm
+    R = rotation_from_euler_deg(10.0, -20.0, 5.0)
+    t = np.array([3.0, -4.0, 600.0])
+    Q = P.copy()
+    Q[:, :2] *= 1.5  # same shape, different holder
+    for name in BASE:
+        for model in (P, Q, P):  # the second P hits the cache filled by the first
+            est = _solve(name, _project(cam_syn, model, R, t), cam_syn, model)
+            assert _err(est, R, t)[0] < 1e-6
+    assert model_cache(P) is model_cache(P.copy()) and model_cache(Q) is not model_cache(P)
+    # a model that failed a check is not remembered as valid
+    line = np.column_stack([np.linspace(-100, 100, 6), np.zeros(6), np.zeros(6)])
+    for _ in range(2):
+        with pytest.raises(DegenerateInputError):
+            _solve("dlt", _project(cam_syn, line, R, t), cam_syn, line)
+
+
+def test_linear_algebra_helpers_match_numpy():
+    from cutterpose.pnp.base import align_rigid_many, kron_normal, smallest_eigvecs, svd_small
+
+    rng = np.random.default_rng(3)
+    n, m = 20, rng.normal(size=(20, 2))
+    a = rng.normal(size=(n, 4))
+    O = (a[:, :, None] * a[:, None, :]).reshape(n, 16)
+    B = np.zeros((n, 2, 3))
+    B[:, 0, 0] = B[:, 1, 1] = 1.0
+    B[:, :, 2] = -m
+    for coord_outer in (True, False):  # rows kron(B_i, a_i) resp. kron(a_i, B_i)
+        rows = [np.kron(B[i], a[i][None]) if coord_outer else np.kron(a[i][None], B[i])
+                for i in range(n)]
+        A = np.vstack(rows)
+        np.testing.assert_allclose(kron_normal(O, m, coord_outer), A.T @ A, rtol=1e-12,
+                                   atol=1e-12)
+    S = rng.normal(size=(12, 12))
+    S = S @ S.T
+    V = smallest_eigvecs(S, 3)
+    w, E = np.linalg.eigh(S)
+    np.testing.assert_allclose(np.abs(V.T @ E[:, :3]), np.eye(3), atol=1e-10)
+    M = rng.normal(size=(6, 10))
+    np.testing.assert_allclose(svd_small(M)[1], np.linalg.svd(M)[1], rtol=1e-12)
+    P = rng.normal(size=(n, 3)) * 50
+    for planar in (False, True):
+        if planar:
+            P[:, 2] = 0.0
+        Rs = Rotation.random(3, random_state=rng).as_matrix()
+        Xs = P @ Rs.transpose(0, 2, 1) + rng.normal(size=(3, 1, 3)) * 100
+        Xs += rng.normal(size=Xs.shape) * 0.1
+        for (R, t), X in zip(align_rigid_many(P, Xs), Xs, strict=True):
+            S = (X - X.mean(0)).T @ (P - P.mean(0))
+            U, _, Vt = np.linalg.svd(S)
+            R0 = U @ np.diag([1, 1, np.sign(np.linalg.det(U) * np.linalg.det(Vt))]) @ Vt
+            np.testing.assert_allclose(R, R0, atol=1e-12)
+            np.testing.assert_allclose(t, X.mean(0) - R0 @ P.mean(0), atol=1e-9)
+
+
+def test_pinhole_normalize_px_matches_the_generic_formula(cam_syn):
+    from cutterpose.camera import Camera, PinholeCamera
+
+    cam = PinholeCamera(1800.0, 1750.0, 1020.5, 760.25, (2048, 1536), skew=0.7)
+    px = np.random.default_rng(1).uniform(0, 2000, (7, 5, 2))
+    np.testing.assert_array_equal(cam.normalize_px(px), Camera.normalize_px(cam, px))
+    assert cam.focal_px == Camera.focal_px.fget(cam)
+    cam.fx = 1900.0  # fields may change: nothing is cached
+    np.testing.assert_array_equal(cam.normalize_px(px), Camera.normalize_px(cam, px))

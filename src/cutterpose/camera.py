@@ -161,6 +161,18 @@ class PinholeCamera(Camera):
     def K(self) -> np.ndarray:
         return np.array([[self.fx, self.skew, self.cx], [0.0, self.fy, self.cy], [0, 0, 1.0]])
 
+    # the two below are Camera's formulas on the fields directly: building K per call cost more
+    # than the arithmetic (they sit on every PnP solve's path); not cached, since fields may change
+    @property
+    def focal_px(self) -> float:
+        return np.float64(0.5 * (float(self.fx) + float(self.fy)))
+
+    def normalize_px(self, observed_px) -> np.ndarray:
+        ideal = _as_points(observed_px, 2, "observed_px")  # no distortion: no copy needed
+        y = (ideal[..., 1] - float(self.cy)) / float(self.fy)
+        x = (ideal[..., 0] - float(self.cx) - float(self.skew) * y) / float(self.fx)
+        return np.stack([x, y], axis=-1)
+
     def to_dict(self) -> dict:
         return {"name": self.name, "model": "pinhole", "image_size_px": list(self.image_size_px),
                 "camera_matrix": self.K.tolist(), "distortion": None}

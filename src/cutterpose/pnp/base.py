@@ -21,18 +21,22 @@ on normalised image coordinates ``m = K^-1 ideal_px`` (undistorted), and wraps i
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable
 
 import numpy as np
+from scipy.linalg.lapack import dgesdd as _dgesdd
+from scipy.linalg.lapack import dsyevr as _dsyevr
 
 from ..camera import Camera
 from ..errors import DegenerateInputError, InputError
 from ..estimate import PoseEstimate
 from ..holder import Holder
 
-__all__ = ["model_points", "check_correspondences", "reprojection_rms", "select", "make_solver",
-           "is_planar", "plane_frame", "align_rigid"]
+__all__ = ["model_points", "model_cache", "check_correspondences", "reprojection_rms", "select",
+           "make_solver", "is_planar", "plane_frame", "align_rigid", "align_rigid_many",
+           "kron_normal", "smallest_eigvecs", "svd_small"]
 
 Candidate = tuple[np.ndarray, np.ndarray]
 
@@ -48,6 +52,24 @@ def model_points(model) -> np.ndarray:
     if P.ndim != 2 or P.shape[1] != 3:
         raise InputError(f"object points must have shape (n, 3), got {P.shape}")
     return P
+
+
+def model_cache(P: np.ndarray) -> dict:
+    """Per-model scratch dict for quantities that depend only on the object points (checks,
+    planarity, plane frame, control points...), keyed on the array's bytes so that an edited or
+    different array never hits a stale entry. Solvers store read-only arrays under their own
+    keys. Bounded: cleared when it grows past a few dozen models (random models per trial)."""
+    key = (P.shape, P.dtype.str, P.tobytes())
+    d = _MODEL_CACHE.get(key)
+    if d is None:
+        if len(_MODEL_CACHE) >= _MODEL_CACHE_SIZE:
+            _MODEL_CACHE.clear()
+        d = _MODEL_CACHE[key] = {}
+    return d
+
+
+_MODEL_CACHE: dict = {}
+_MODEL_CACHE_SIZE = 64
 
 
 def check_correspondences(points_px, points_obj, min_points: int) -> tuple[np.ndarray, np.ndarray]:
@@ -70,35 +92,45 @@ def check_correspondences(points_px, points_obj, min_points: int) -> tuple[np.nd
     if len(x) != len(P):
         raise InputError(f"points_px has {len(x)} points but the model has {len(P)}; they must "
                          "correspond one to one")
-    if not np.all(np.isfinite(x)):
+    if not np.isfinite(x).all():
         raise InputError(f"points_px holds NaN or inf (at {np.argwhere(~np.isfinite(x))[0, 0]})")
-    if not np.all(np.isfinite(P)):
+    # the object-point checks depend on the model only: a model that passed once passes again
+    # (only a pass is remembered, so failures raise in the same order as before)
+    cache = model_cache(P) if P.ndim == 2 else {}
+    P_ok = cache.get("checked", False)
+    if not P_ok and not np.isfinite(P).all():
         raise InputError("object points hold NaN or inf")
     if len(x) < min_points:
         raise DegenerateInputError(f"need at least {min_points} points, got {len(x)}")
-    for arr, what in ((x, "image points"), (P, "object points")):
-        if _collinear(arr):
-            raise DegenerateInputError(f"all {what} are collinear (or coincide): the pose is not "
-                                       "determined")
+    if _collinear(x):
+        raise DegenerateInputError("all image points are collinear (or coincide): the pose is not "
+                                   "determined")
+    if not P_ok:
+        if _collinear(P):
+            raise DegenerateInputError("all object points are collinear (or coincide): the pose "
+                                       "is not determined")
+        cache["checked"] = True
     return x, P
 
 
 def _collinear(a: np.ndarray, tol: float = 1e-9) -> bool:
     """True when the points span at most a line: the second singular value of the centred set is
     below ``tol`` times the first. Uses the covariance's invariants (sum of principal 2x2 minors
-    = sum of products of eigenvalue pairs) instead of an SVD: this sits on every solve's path."""
-    c = a - a.mean(axis=0)
-    C = c.T @ c
-    tr = np.trace(C)
+    = sum of products of eigenvalue pairs) instead of an SVD: this sits on every solve's path.
+    The arithmetic on the 2x2 / 3x3 covariance is on Python floats (cheaper than numpy scalars)."""
+    c = a - a.sum(axis=0) / len(a)  # = a.mean(axis=0), cheaper
+    C = (c.T @ c).tolist()
+    if len(C) == 2:
+        tr = C[0][0] + C[1][1]
+        pairs = C[0][0] * C[1][1] - C[0][1] ** 2
+    else:
+        tr = C[0][0] + C[1][1] + C[2][2]
+        pairs = (C[0][0] * C[1][1] - C[0][1] ** 2 + C[0][0] * C[2][2] - C[0][2] ** 2
+                 + C[1][1] * C[2][2] - C[1][2] ** 2)
     if tr <= 0:
         return True
-    if C.shape == (2, 2):
-        pairs = C[0, 0] * C[1, 1] - C[0, 1] ** 2
-    else:
-        pairs = (C[0, 0] * C[1, 1] - C[0, 1] ** 2 + C[0, 0] * C[2, 2] - C[0, 2] ** 2
-                 + C[1, 1] * C[2, 2] - C[1, 2] ** 2)
     # pairs / tr^2 ~ (s2 / s1)^2 when s2 << s1
-    return bool(pairs <= (tol**2) * tr * tr)
+    return pairs <= (tol**2) * tr * tr
 
 
 def is_planar(P: np.ndarray, tol: float = 1e-6) -> bool:
@@ -123,12 +155,75 @@ def plane_frame(P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 def align_rigid(P: np.ndarray, X: np.ndarray) -> Candidate:
     """Least-squares rigid motion ``X ~ R P + t`` (Umeyama/Kabsch with the correct reflection
     rule ``S = diag(1, 1, det U det V)``, the notes' AL-ok; valid for planar sets)."""
-    Pc, Xc = P.mean(axis=0), X.mean(axis=0)
-    S = (X - Xc).T @ (P - Pc)
-    U, _, Vt = np.linalg.svd(S)
-    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U) * np.linalg.det(Vt)) or 1.0])
-    R = U @ D @ Vt
-    return R, Xc - R @ Pc
+    return align_rigid_many(P, np.asarray(X)[None])[0]
+
+
+def align_rigid_many(P: np.ndarray, Xs: np.ndarray) -> list[Candidate]:
+    """:func:`align_rigid` of ``P`` to each of ``Xs`` (k, n, 3) in one batched pass (the
+    per-call numpy overhead dominates at these sizes)."""
+    # sum / n is what mean computes, without its Python-level overhead
+    Pc = P.sum(axis=0) / len(P)
+    Xc = Xs.sum(axis=1) / Xs.shape[1]
+    S = np.matmul((Xs - Xc[:, None, :]).transpose(0, 2, 1), P - Pc)
+    if len(S) <= 3:  # one LAPACK call each beats numpy's batched wrapper at these counts
+        USV = [svd_small(Si) for Si in S]
+        U, Vt = np.array([u for u, _, _ in USV]), np.array([vt for _, _, vt in USV])
+    else:
+        U, _, Vt = np.linalg.svd(S)
+    R = np.matmul(U, Vt)
+    # det U det Vt = det(U Vt): S = diag(1, 1, -1) where it is negative
+    flip = np.linalg.det(R) < 0
+    if flip.any():
+        R[flip] -= 2.0 * U[flip, :, 2:] * Vt[flip, 2:, :]
+    t = Xc - R @ Pc
+    return list(zip(R, t))
+
+
+# B_i^T B_i = [[1, 0, -u], [0, 1, -v], [-u, -v, u^2 + v^2]] of a point's two projection rows
+# B_i = [[1, 0, -u], [0, 1, -v]], as coefficients of (1, u, v, u^2 + v^2)
+_BTB = np.zeros((4, 3, 3))
+_BTB[0, 0, 0] = _BTB[0, 1, 1] = 1.0
+_BTB[1, 0, 2] = _BTB[1, 2, 0] = -1.0
+_BTB[2, 1, 2] = _BTB[2, 2, 1] = -1.0
+_BTB[3, 2, 2] = 1.0
+_BTB9 = _BTB.reshape(4, 9).T.copy()
+
+
+def kron_normal(O: np.ndarray, m: np.ndarray, coord_outer: bool) -> np.ndarray:
+    """Normal matrix ``A^T A`` of the linear systems whose rows for point i are
+    ``kron(B_i, a_i)`` (``coord_outer``, the DLT's layout) or ``kron(a_i, B_i)`` (EPnP's), with
+    ``B_i`` as in ``_BTB`` and ``a_i`` a model vector of length d: ``A^T A = sum_i
+    kron(B_i^T B_i, a_i a_i^T)``. ``O`` (n, d*d) holds the model's ``a_i a_i^T`` (cache it);
+    the image enters through 4 weights per point, so this is two small matrix products instead
+    of building the 2n-row system."""
+    n, dd = O.shape
+    d = int(round(dd**0.5))
+    E = np.empty((n, 4))
+    E[:, 0] = 1.0
+    E[:, 1:3] = m
+    E[:, 3] = m[:, 0] * m[:, 0] + m[:, 1] * m[:, 1]
+    T = (_BTB9 @ (E.T @ O)).reshape(3, 3, d, d)  # [a, b, i, j]
+    if coord_outer:
+        return T.transpose(0, 2, 1, 3).reshape(3 * d, 3 * d)
+    return T.transpose(2, 0, 3, 1).reshape(3 * d, 3 * d)
+
+
+def svd_small(A: np.ndarray, full_matrices: bool = True):
+    """``np.linalg.svd(A)`` of one small matrix through LAPACK's dgesdd directly (the routine
+    numpy calls), without numpy's per-call overhead (a quarter of its time at 3x3)."""
+    u, s, vt, info = _dgesdd(A, compute_uv=1, full_matrices=int(full_matrices))
+    if info != 0:
+        return np.linalg.svd(A, full_matrices=full_matrices)
+    return u, s, vt
+
+
+def smallest_eigvecs(N: np.ndarray, k: int) -> np.ndarray:
+    """Eigenvectors (columns, ascending eigenvalue) of the k least eigenvalues of a symmetric
+    matrix: LAPACK dsyevr for just those (a third of np.linalg.eigh's time at 9x9)."""
+    w, z, _, _, info = _dsyevr(N, range="I", il=1, iu=k)
+    if info != 0:
+        return np.linalg.eigh(N)[1][:, :k]
+    return z
 
 
 def reprojection_rms(R, t, P, m) -> float:
@@ -139,40 +234,44 @@ def reprojection_rms(R, t, P, m) -> float:
     return float(np.sqrt(np.mean(np.sum((proj - m) ** 2, axis=1))))
 
 
-def _det3(M: np.ndarray) -> np.ndarray:
-    """Determinants of (k, 3, 3) matrices (explicit: np.linalg.det costs more on tiny batches)."""
-    return (M[:, 0, 0] * (M[:, 1, 1] * M[:, 2, 2] - M[:, 1, 2] * M[:, 2, 1])
-            - M[:, 0, 1] * (M[:, 1, 0] * M[:, 2, 2] - M[:, 1, 2] * M[:, 2, 0])
-            + M[:, 0, 2] * (M[:, 1, 0] * M[:, 2, 1] - M[:, 1, 1] * M[:, 2, 0]))
-
-
 def select(method: str, cands: list[Candidate], P, m, f_px: float) -> PoseEstimate:
     """Pick the candidate with the least reprojection error; see the module docstring."""
     n_raw = len(cands)
     if cands:
-        Rs = np.array([np.asarray(R, float).reshape(3, 3) for R, _ in cands])
-        ts = np.array([np.asarray(t, float).reshape(3) for _, t in cands])
-        finite = np.isfinite(Rs).all(axis=(1, 2)) & np.isfinite(ts).all(axis=1)
-        Rs, ts = Rs[finite], ts[finite]
+        try:  # one conversion for the stack (the usual case: all (3, 3) and (3,))
+            Rs = np.array([R for R, _ in cands], dtype=float).reshape(n_raw, 3, 3)
+            ts = np.array([t for _, t in cands], dtype=float).reshape(n_raw, 3)
+        except ValueError:
+            Rs = np.array([np.asarray(R, float).reshape(3, 3) for R, _ in cands])
+            ts = np.array([np.asarray(t, float).reshape(3) for _, t in cands])
         X = P @ Rs.transpose(0, 2, 1) + ts[:, None, :]
-        ok = (np.abs(_det3(Rs) - 1.0) <= 1e-6) & np.all(X[..., 2] > 0, axis=1)
-        Rs, ts, X = Rs[ok], ts[ok], X[ok]
+        # a NaN/inf in R or t makes X non-finite, so a finite sum means all are finite (the
+        # exact per-candidate test runs only otherwise)
+        if not math.isfinite(X.sum()):
+            finite = np.isfinite(Rs).all(axis=(1, 2)) & np.isfinite(ts).all(axis=1)
+            Rs, ts = Rs[finite], ts[finite]
+            X = P @ Rs.transpose(0, 2, 1) + ts[:, None, :]
+        ok = (np.abs(np.linalg.det(Rs) - 1.0) <= 1e-6) & (X[..., 2].min(axis=1) > 0)
+        if not ok.all():
+            Rs, ts, X = Rs[ok], ts[ok], X[ok]
     if not cands or len(Rs) == 0:
         reason = ("no candidate pose" if not cands
                   else f"none of {n_raw} candidates is finite with all points in front")
         return PoseEstimate.failure(method, reason, info={"n_candidates": n_raw})
-    err = np.sqrt(np.mean(np.sum((X[..., :2] / X[..., 2:3] - m) ** 2, axis=2), axis=1))
-    order = np.argsort(err, kind="stable")
-    Rs, ts, err = Rs[order], ts[order], err[order]
+    d = X[..., :2] / X[..., 2:3] - m
+    err = np.sqrt(np.sum(d * d, axis=(1, 2)) / d.shape[1])  # RMS over the points
     ratio = np.nan
-    # a second candidate counts only when it is a different pose, not the same minimum reached
-    # twice (iterative refiners stop ~1e-6 apart): 1e-4 rad / 1e-4 relative in t
-    dR = np.abs(Rs - Rs[0]).max(axis=(1, 2))
-    dt = np.linalg.norm(ts - ts[0], axis=1) / max(np.linalg.norm(ts[0]), 1e-12)
-    other = np.flatnonzero((dR > 1e-4) | (dt > 1e-4))
-    if other.size:
-        e2 = err[other[0]]
-        ratio = err[0] / e2 if e2 > 0 else 1.0
+    if len(err) > 1:
+        order = np.argsort(err, kind="stable")
+        Rs, ts, err = Rs[order], ts[order], err[order]
+        # a second candidate counts only when it is a different pose, not the same minimum
+        # reached twice (iterative refiners stop ~1e-6 apart): 1e-4 rad / 1e-4 relative in t
+        dR = np.abs(Rs - Rs[0]).max(axis=(1, 2))
+        dt = np.linalg.norm(ts - ts[0], axis=1) / max(np.linalg.norm(ts[0]), 1e-12)
+        other = np.flatnonzero((dR > 1e-4) | (dt > 1e-4))
+        if other.size:
+            e2 = err[other[0]]
+            ratio = err[0] / e2 if e2 > 0 else 1.0
     return PoseEstimate(method=method, R_cam_holder=Rs[0], t_cam_holder_mm=ts[0],
                         residual_px=float(err[0] * f_px), ambiguity_ratio=float(ratio),
                         candidates=list(zip(Rs, ts)), info={"n_candidates": n_raw})
@@ -187,7 +286,7 @@ def make_solver(method: str, candidates: Callable[[np.ndarray, np.ndarray], list
         P = model_points(model)
         x, P = check_correspondences(points_px, P, min_points)
         m = camera.normalize_px(x)
-        if not np.all(np.isfinite(m)):
+        if not np.isfinite(m).all():
             raise InputError("points_px lie outside the camera's valid distortion domain")
         extra = {}
         try:

@@ -52,69 +52,147 @@ Deviations from the reference code (notes sections 3 and 8):
 
 from __future__ import annotations
 
-import numpy as np
+import math
+from functools import cache
 
-from .base import Candidate, align_rigid, make_solver
+import numpy as np
+from scipy.linalg.lapack import dgeev as _dgeev
+
+from .base import Candidate, align_rigid_many, make_solver, model_cache, svd_small
 
 __all__ = ["candidates", "solve"]
+
+_DER7 = np.arange(7.0, 0.0, -1.0)
+_POW6 = np.arange(6.0, -1.0, -1.0)
+_SUB7 = (np.arange(1, 7), np.arange(6))
+
+
+def _frame_rows(x) -> list[list[float]]:
+    """:func:`_complete_frame` of a unit 3-vector as nested lists (rows), on Python floats:
+    numpy's per-call overhead is most of the cost at this size."""
+    x0, x1, x2 = x
+    if abs(x1) < abs(x2):
+        nz = math.sqrt(x2 * x2 + x0 * x0)
+        z0, z1, z2 = -x2 / nz, 0.0, x0 / nz  # x cross e_y
+        y0, y1, y2 = z1 * x2 - z2 * x1, z2 * x0 - z0 * x2, z0 * x1 - z1 * x0
+    else:
+        ny = math.sqrt(x1 * x1 + x0 * x0)
+        y0, y1, y2 = -x1 / ny, x0 / ny, 0.0  # e_z cross x
+        z0, z1, z2 = x1 * y2 - x2 * y1, x2 * y0 - x0 * y2, x0 * y1 - x1 * y0
+    nz = math.sqrt(z0 * z0 + z1 * z1 + z2 * z2)
+    return [[x0, y0, z0 / nz], [x1, y1, z1 / nz], [x2, y2, z2 / nz]]
 
 
 def _complete_frame(x: np.ndarray) -> np.ndarray:
     """Rotation ``[x y z]`` (columns) with first axis ``x`` (notes section 3 step 3)."""
-    if abs(x[1]) < abs(x[2]):
-        z = np.array([-x[2], 0.0, x[0]])  # x cross e_y
-        z /= np.linalg.norm(z)
-        y = np.array([z[1] * x[2] - z[2] * x[1], z[2] * x[0] - z[0] * x[2],
-                      z[0] * x[1] - z[1] * x[0]])
-    else:
-        y = np.array([-x[1], x[0], 0.0])  # e_z cross x
-        y /= np.linalg.norm(y)
-        z = np.array([x[1] * y[2] - x[2] * y[1], x[2] * y[0] - x[0] * y[2],
-                      x[0] * y[1] - x[1] * y[0]])
-    return np.column_stack([x, y, z / np.linalg.norm(z)])
+    return np.array(_frame_rows(x.tolist()))
+
+
+@cache
+def _fdf_map() -> np.ndarray:
+    """(8, 25): ``G = _fdf_map() @ vec(g g^T)`` for ``G = f f'`` summed over the points, with
+    ``f = sum_a g_a t^(4-a)``: the coefficient of ``t^(7-k)`` is ``sum_(a+b=k) (4-b) g_a g_b``."""
+    M = np.zeros((8, 5, 5))
+    for a in range(5):
+        for b in range(4):  # g_4 is constant: no t^-1 term
+            M[a + b, a, b] = 4 - b
+    return M.reshape(8, 25)
+
+
+def _pair_model(P: np.ndarray, i1: int, i2: int):
+    """What depends on the model and the axis pair only (cached per model and pair: the
+    holder's longest projection comes from a few pairs): the other points' mask, the squared
+    distances ``D12^2``, ``D1i^2``, ``D2i^2``, and the local frame ``R_o`` with ``Pa``."""
+    cache = model_cache(P).setdefault("rpnp", {})
+    pm = cache.get((i1, i2))
+    if pm is None:
+        rest = np.ones(len(P), dtype=bool)
+        rest[[i1, i2]] = False
+        Pr = P[rest]
+        D12_2 = float(np.sum((P[i1] - P[i2]) ** 2))
+        D1i_2 = np.sum((Pr - P[i1]) ** 2, axis=1)
+        D2i_2 = np.sum((Pr - P[i2]) ** 2, axis=1)
+        edge = P[i2] - P[i1]
+        if np.any(edge):
+            p0 = 0.5 * (P[i1] + P[i2])
+            R_o = _complete_frame(edge / np.linalg.norm(edge))
+            Pa = (P - p0) @ R_o
+        else:
+            Pa = None
+        pm = cache[(i1, i2)] = (rest, D12_2, D1i_2, D2i_2, Pa)
+    return pm
 
 
 def _cost_derivative(b: np.ndarray, P: np.ndarray, i1: int, i2: int) -> np.ndarray:
     """Coefficients (t^7 .. t^0) of ``G(t) = sum_i f_i(t) f_i'(t)`` (paper eq. 8)."""
-    rest = np.ones(len(P), dtype=bool)
-    rest[[i1, i2]] = False
-    bi = b[rest]
-    c12 = b[i1] @ b[i2]
-    c1i = bi @ b[i1]
-    c2i = bi @ b[i2]
+    rest, D12_2, D1i_2, D2i_2, _ = _pair_model(P, i1, i2)
+    c12 = float(b[i1] @ b[i2])
+    c1i, c2i = (b[[i1, i2]] @ b[rest].T)  # one product for both cosines
     s12_2 = 1.0 - c12 * c12
     s1i_2 = 1.0 - c1i * c1i
-    D12_2 = np.sum((P[i1] - P[i2]) ** 2)
-    D1i_2 = np.sum((P[rest] - P[i1]) ** 2, axis=1)
-    D2i_2 = np.sum((P[rest] - P[i2]) ** 2, axis=1)
     A1 = D1i_2 / D12_2
     A2 = A1 * s12_2 - s1i_2
     A3 = c1i * c2i - c12
     A4 = c12 * c2i - c1i
     A6 = (D2i_2 - D12_2 - D1i_2) / (2.0 * D12_2)
     A7 = 1.0 - c12 * c12 - c1i * c1i + c12 * c1i * c2i + A6 * s12_2
-    g0 = A6 * A6 - A1 * c2i * c2i
-    g1 = 2.0 * (A3 * A6 - A1 * A4 * c2i)
-    g2 = A3 * A3 + 2.0 * A6 * A7 - A1 * A4 * A4 - A2 * c2i * c2i
-    g3 = 2.0 * (A3 * A7 - A2 * A4 * c2i)
-    g4 = A7 * A7 - A2 * A4 * A4
-    G = np.array([4 * g0 * g0, 7 * g0 * g1, 6 * g0 * g2 + 3 * g1 * g1,
-                  5 * g0 * g3 + 5 * g1 * g2, 4 * g0 * g4 + 4 * g1 * g3 + 2 * g2 * g2,
-                  3 * g1 * g4 + 3 * g2 * g3, 2 * g2 * g4 + g3 * g3, g3 * g4])
-    return G.sum(axis=1)
+    g = np.empty((5, len(c1i)))
+    g[0] = A6 * A6 - A1 * c2i * c2i
+    g[1] = 2.0 * (A3 * A6 - A1 * A4 * c2i)
+    g[2] = A3 * A3 + 2.0 * A6 * A7 - A1 * A4 * A4 - A2 * c2i * c2i
+    g[3] = 2.0 * (A3 * A7 - A2 * A4 * c2i)
+    g[4] = A7 * A7 - A2 * A4 * A4
+    # sum_i f_i f_i' from the 5x5 Gram matrix of the quartics' coefficients
+    return _fdf_map() @ (g @ g.T).ravel()
+
+
+def _roots(p: np.ndarray) -> np.ndarray:
+    """``np.roots(p)``: the eigenvalues of the companion matrix, through LAPACK dgeev directly
+    (the routine behind np.linalg.eigvals; np.roots' own overhead was most of its 40 us)."""
+    n_trailing = 0
+    if p[0] == 0 or p[-1] == 0:  # strip leading zeros, count trailing ones (zero roots)
+        nz = np.flatnonzero(p)
+        if nz.size == 0:
+            return np.empty(0)
+        n_trailing = len(p) - nz[-1] - 1
+        p = p[nz[0]:nz[-1] + 1]
+    N = len(p)
+    roots = np.empty(0, dtype=complex)
+    if N > 1:
+        A = np.zeros((N - 1, N - 1))
+        A[np.arange(1, N - 1), np.arange(N - 2)] = 1.0  # np.diag(np.ones(N - 2), -1)
+        A[0, :] = -p[1:] / p[0]
+        wr, wi, _, _, info = _dgeev(A, compute_vl=0, compute_vr=0)
+        roots = np.linalg.eigvals(A) if info != 0 else wr + 1j * wi
+    if n_trailing:
+        roots = np.concatenate([roots, np.zeros(n_trailing, roots.dtype)])
+    return roots
 
 
 def _minima(G: np.ndarray) -> np.ndarray:
     """Real roots of G with G' > 0 (local minima of F)."""
-    if not np.all(np.isfinite(G)) or not np.any(G):
+    gmax = float(np.abs(G).max())
+    if not 0.0 < gmax < math.inf:  # all zero, or not finite (NaN fails every comparison)
         return np.empty(0)
-    G = G / np.abs(G).max()
-    roots = np.roots(G)
-    if roots.size == 0:
-        return np.empty(0)
-    tol = 1e-3 * np.abs(roots.real).max()
-    t = roots.real[np.abs(roots.imag) <= tol]
-    dG = np.polyval(np.polyder(G), t)
+    G = G / gmax
+    if G[0] != 0.0 and G[-1] != 0.0:
+        # np.roots without its overhead: eigenvalues of the companion matrix by dgeev (the
+        # routine behind np.linalg.eigvals), kept as real and imaginary parts
+        A = np.zeros((7, 7))
+        A[_SUB7] = 1.0
+        A[0] = -G[1:] / G[0]
+        wr, wi, _, _, info = _dgeev(A, compute_vl=0, compute_vr=0)
+        if info != 0:
+            r = np.linalg.eigvals(A)
+            wr, wi = r.real, r.imag
+    else:
+        roots = _roots(G)
+        if roots.size == 0:
+            return np.empty(0)
+        wr, wi = roots.real, roots.imag
+    tol = 1e-3 * np.abs(wr).max()
+    t = wr[np.abs(wi) <= tol]
+    dG = (t[:, None] ** _POW6) @ (G[:-1] * _DER7)  # np.polyval(np.polyder(G), t)
     return t[dG > 0]
 
 
@@ -125,53 +203,67 @@ def candidates(P: np.ndarray, m: np.ndarray) -> list[Candidate]:
     b = bh / np.linalg.norm(bh, axis=1, keepdims=True)
     # longest projection: least cosine between two rays, exhaustively
     cosines = b @ b.T
-    i1, i2 = np.unravel_index(np.argmin(cosines), cosines.shape)
+    i1, i2 = divmod(int(np.argmin(cosines)), n)
     # order the pair by the image, not by the input order, so that permuting the points does not
     # change the result (the cost is not symmetric in i1, i2 under noise)
     if (m[i1, 0], m[i1, 1]) > (m[i2, 0], m[i2, 1]):
         i1, i2 = i2, i1
-    edge = P[i2] - P[i1]
-    if not np.any(edge):
+    Pa = _pair_model(P, i1, i2)[4]
+    if Pa is None:  # the two points coincide
         return []
-    p0 = 0.5 * (P[i1] + P[i2])
-    R_o = _complete_frame(edge / np.linalg.norm(edge))
-    Pa = (P - p0) @ R_o
 
     ts = _minima(_cost_derivative(b, P, i1, i2))
+    if ts.size == 0:
+        return []
+    # the rotation axis in the camera frame, one per minimum
     c12 = b[i1] @ b[i2]
-    u, v = m[:, 0], m[:, 1]
-    out = []
-    for t in ts:
-        axis = (c12 + t) * b[i2] - b[i1]
-        norm = np.linalg.norm(axis)
-        if norm == 0:
-            continue
-        R_x = _complete_frame(axis / norm)
-        r1, r2, r3 = R_x.T
-        # X_i = r1 Pa_x + c (r2 Pa_y + r3 Pa_z) + s (r3 Pa_y - r2 Pa_z) + T
-        Fc = np.outer(Pa[:, 1], r2) + np.outer(Pa[:, 2], r3)
-        Fs = np.outer(Pa[:, 1], r3) - np.outer(Pa[:, 2], r2)
-        F0 = np.outer(Pa[:, 0], r1)
-        A = np.zeros((2 * n, 5))
-        rhs = np.empty(2 * n)
-        for row, w in ((0, u), (1, v)):
-            A[row::2, 0] = Fc[:, row] - w * Fc[:, 2]
-            A[row::2, 1] = Fs[:, row] - w * Fs[:, 2]
-            A[row::2, 2 + row] = 1.0
-            A[row::2, 4] = -w
-            rhs[row::2] = -(F0[:, row] - w * F0[:, 2])
-        cs = np.linalg.lstsq(A, rhs, rcond=None)[0]
-        theta = np.arctan2(cs[1], cs[0])
-        c, s = np.cos(theta), np.sin(theta)
-        R_t = R_x @ np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
-        # T for the exact rotation: the same equations with (c, s) fixed
-        Y = Pa @ R_t.T
-        T = np.linalg.lstsq(A[:, 2:], -(np.concatenate([Y[:, :2] - Y[:, 2:] * m], axis=1)
-                                        .ravel()), rcond=None)[0]
-        Xt = Y + T
-        X = b * np.linalg.norm(Xt, axis=1, keepdims=True) * np.sign(Xt[:, 2:3])
-        out.append(align_rigid(P, X))
-    return out
+    axes = (c12 + ts)[:, None] * b[i2] - b[i1]
+    norms = np.linalg.norm(axes, axis=1)
+    if not norms.all():
+        axes, norms = axes[norms != 0], norms[norms != 0]
+        if not len(axes):
+            return []
+    R_x = np.array([_frame_rows(a) for a in (axes / norms[:, None]).tolist()])  # (k, 3, 3)
+    k = len(R_x)
+    r1, r2, r3 = R_x[:, :, 0], R_x[:, :, 1], R_x[:, :, 2]
+    # X_i = r1 Pa_x + c (r2 Pa_y + r3 Pa_z) + s (r3 Pa_y - r2 Pa_z) + T: the three terms
+    # (F0, Fc, Fs) for every root at once, F = Pa @ Mk (k, n, 3 terms x 3 coordinates)
+    Mk = np.zeros((k, 3, 3, 3))
+    Mk[:, 0, 0] = r1
+    Mk[:, 1, 1] = r2
+    Mk[:, 2, 1] = r3
+    Mk[:, 1, 2] = r3
+    Mk[:, 2, 2] = -r2
+    F = (Pa @ Mk.reshape(k, 3, 9)).reshape(k, n, 3, 3)
+    # the collinearity rows (u X3 - X1, v X3 - X2, interleaved per point as before) of each term
+    Aterm = (F[..., :2] - F[..., 2:] * m[:, None, :]).transpose(0, 1, 3, 2).reshape(k, 2 * n, 3)
+    # the T columns B = [[1, 0, -u], [0, 1, -v]] per point are the same for every root: the
+    # least squares in (c, s, T) is the one in (c, s) with range(B) projected out (exactly what
+    # lstsq of the 2n x 5 system solves), then T from B's pseudo-inverse
+    B = np.zeros((n, 2, 3))
+    B[:, 0, 0] = B[:, 1, 1] = 1.0
+    B[:, :, 2] = -m
+    Ub, sb, Vbt = svd_small(B.reshape(2 * n, 3), full_matrices=False)
+    At = Aterm - Ub @ (Ub.T @ Aterm)
+    Acs, rhs = At[:, :, 1:], -At[:, :, 0]
+    N = Acs.transpose(0, 2, 1) @ Acs  # (k, 2, 2)
+    g = (Acs.transpose(0, 2, 1) @ rhs[:, :, None])[..., 0]
+    # (c, s) = N^-1 g up to the positive factor det N: only its direction is used
+    c_ = N[:, 1, 1] * g[:, 0] - N[:, 0, 1] * g[:, 1]
+    s_ = N[:, 0, 0] * g[:, 1] - N[:, 0, 1] * g[:, 0]
+    theta = np.arctan2(s_, c_)
+    c, s = np.cos(theta)[:, None], np.sin(theta)[:, None]
+    R_t = np.empty((k, 3, 3))
+    R_t[:, :, 0] = r1
+    R_t[:, :, 1] = c * r2 + s * r3
+    R_t[:, :, 2] = c * r3 - s * r2
+    # T for the exact rotation: the same equations with (c, s) fixed
+    Y = Pa @ R_t.transpose(0, 2, 1)  # (k, n, 3)
+    rhs2 = -(Y[..., :2] - Y[..., 2:] * m).reshape(k, 2 * n)
+    T = ((rhs2 @ Ub) / sb) @ Vbt
+    Xt = Y + T[:, None, :]
+    X = b * (np.sqrt(np.sum(Xt * Xt, axis=2, keepdims=True)) * np.sign(Xt[..., 2:3]))
+    return align_rigid_many(P, X)
 
 
 solve = make_solver("rpnp", candidates, min_points=4)
