@@ -31,13 +31,14 @@ ERR = ["alpha_err_deg", "beta_err_deg", "gamma_err_deg", "X_err_mm", "Y_err_mm",
 
 
 def _fmt(v) -> str:
-    return " | ".join("-" if not np.isfinite(x) else f"{x:.3f}" for x in v)
+    return " ".join("-" if not np.isfinite(x) else f"{x:.3f}" for x in v)
 
 
 def _reason_class(reason: str) -> str:
     """A short class of a failure reason (the full text is in failures.csv)."""
     r = reason.split(" | model fit: ")[-1]
-    for pat, name in ((r"gradient edge found along only", "edge hidden/damaged (edge support)"),
+    for pat, name in ((r"off the direction of its family", "segment off its family"),
+                      (r"gradient edge found along only", "edge hidden/damaged (edge support)"),
                       (r"moved \d+ px from the model", "refined line left the fitted model"),
                       (r"outline found", "pocket outline mostly missing"),
                       (r"corner residual RMS", "verdict: corner residual RMS"),
@@ -48,7 +49,6 @@ def _reason_class(reason: str) -> str:
                       (r"gross error", "gross error (accepted pose, >2 deg / >10 mm)"),
                       (r"characteristic segments", "segmentation: segment count"),
                       (r"not on the contour", "hidden corner (contour check)"),
-                      (r"off the direction of its family", "segment off its family"),
                       (r"nearly parallel", "consecutive segments parallel")):
         if re.search(pat, r):
             return name
@@ -59,10 +59,12 @@ def _q(x, p) -> str:
     return f"{np.nanpercentile(x, p):.3f}" if np.isfinite(x).any() else "-"
 
 
-def report(out: Path) -> str:
-    rows = list(csv.DictReader(open(out / "trials.csv")))
-    corners = list(csv.DictReader(open(out / "corners.csv")))
-    fails = list(csv.DictReader(open(out / "failures.csv")))
+def std_table(rows, corners, difficulties=None) -> list[str]:
+    """Table 2 rows: std per DOF per method over the non-failed images and over all with a
+    pose (of the given difficulties only, if any), with the paper's row."""
+    diff = {c["trial"]: c["difficulty"] for c in corners}
+    if difficulties:
+        rows = [r for r in rows if diff.get(r["trial"]) in difficulties]
     methods = list(dict.fromkeys(r["method"] for r in rows))
     lines = ["| method | n ok / n | std alpha, beta, gamma deg; X, Y, Z mm (non-failed) | "
              "std (all with a pose) | paper Table 2 |", "|---|---|---|---|---|"]
@@ -77,6 +79,34 @@ def report(out: Path) -> str:
         p = PAPER.get(m)
         lines.append(f"| {m} | {good.sum()} / {len(sel)} | {_fmt(s_ok)} | {_fmt(s_all)} | "
                      + (" ".join(f"{x:.2f}" for x in p) if p else "-") + " |")
+    return lines
+
+
+def per_difficulty(rows, corners, method="dm+") -> list[str]:
+    """std and mean error per DOF of one method per difficulty (non-failed images)."""
+    diff = {c["trial"]: c["difficulty"] for c in corners}
+    lines = [f"| {method}: difficulty | n ok | std alpha beta gamma X Y Z | mean (bias) |",
+             "|---|---|---|---|"]
+    for d in sorted(set(diff.values())):
+        sel = [r for r in rows if r["method"] == method and diff[r["trial"]] == d
+               and r["failed"] == "0"]
+        E = np.array([[float(r[c]) for c in ERR] for r in sel]).reshape(-1, 6)
+        s = E.std(axis=0, ddof=1) if len(E) > 1 else np.full(6, np.nan)
+        mu = E.mean(axis=0) if len(E) else np.full(6, np.nan)
+        lines.append(f"| {d} | {len(E)} | {' '.join(f'{x:.3f}' for x in s)} | "
+                     f"{' '.join(f'{x:.3f}' for x in mu)} |")
+    return lines
+
+
+def report(out: Path, subset=("easy", "dim", "blurred", "occluded")) -> str:
+    rows = list(csv.DictReader(open(out / "trials.csv")))
+    corners = list(csv.DictReader(open(out / "corners.csv")))
+    fails = list(csv.DictReader(open(out / "failures.csv")))
+    lines = ["All images:", ""] + std_table(rows, corners)
+    if subset:
+        lines += ["", f"Without wear ({', '.join(subset)}; the paper's holder was new):", ""]
+        lines += std_table(rows, corners, set(subset))
+    lines += [""] + per_difficulty(rows, corners)
     # failures: images lost by the image processing, then per method
     lost = [c for c in corners if c["reason"]]
     lines += ["", f"Images lost by the image processing: {len(lost)} of {len(corners)}", ""]

@@ -66,3 +66,15 @@ def test_measure_refuses_image_without_holder(rendered):
     img = rng.integers(0, 256, r.image.shape, dtype=np.uint8)
     m = measure(img, cam, default_holder(), "opencv-ippe-lm")
     assert not m.ok and m.pose is None and "holder" in m.quality.reason
+
+
+def test_demo_prints_pose_truth_error_and_writes_overlay(tmp_path):
+    from cutterpose.pipeline import demo
+
+    out = []
+    m = demo(tmp_path, echo=out.append)
+    assert m.ok, m.quality.reason
+    text = "\n".join(out)
+    assert "measured" in text and "true" in text and "error" in text
+    assert (tmp_path / "demo_overlay.png").stat().st_size > 1000
+    assert (tmp_path / "demo.json").is_file()

@@ -597,15 +597,20 @@ def intersect_consecutive(lines: np.ndarray) -> np.ndarray:
 
 def _robust_line(p: np.ndarray, iterations: int = 5):
     """Huber-weighted total least squares line (IRLS); returns centroid, direction, normal."""
-    w = np.ones(len(p))
     c, d, n = _fit_line(p)
     for _ in range(iterations):
         r = (p - c) @ n
-        s = 1.4826 * np.median(np.abs(r - np.median(r))) + 1e-6
-        k = 1.5 * s
         a = np.abs(r)
+        s = 1.4826 * np.median(a) + 1e-6  # residuals of a fitted line are centred
+        k = 1.5 * s
         w = np.where(a <= k, 1.0, k / np.maximum(a, 1e-12))
-        c, d, n = _fit_line(p, w)
+        c1, d, n1 = _fit_line(p, w)
+        if n1 @ n < 0:
+            n1 = -n1
+        moved = abs((c1 - c) @ n1) + float(np.linalg.norm(n1 - n)) * 1e3
+        c, n = c1, n1
+        if moved < 1e-4:  # converged (offset and tilt over 1000 px below 1e-4 px)
+            break
     return c, d, n
 
 
