@@ -360,3 +360,39 @@ def test_pinhole_normalize_px_matches_the_generic_formula(cam_syn):
     assert cam.focal_px == Camera.focal_px.fget(cam)
     cam.fx = 1900.0  # fields may change: nothing is cached
     np.testing.assert_array_equal(cam.normalize_px(px), Camera.normalize_px(cam, px))
+
+
+def test_epnp_gate_and_second_solution(monkeypatch):
+    """EPnP builds N >= 3 only above the 5 px gate (for the camera's own focal length); its
+    second candidate, when present, is a different pose (no false ambiguity from a neighbour
+    of the best); forcing N = 3 everywhere changes the pose by no more than rounding."""
+    from cutterpose.pnp import epnp
+
+    calls = []
+    orig = epnp._hypotheses
+
+    def spy(*a, **k):
+        calls.append(1)
+        return orig(*a, **k)
+
+    monkeypatch.setattr(epnp, "_hypotheses", spy)
+    tr = generate_trials(40, 1.0, seed=21)
+    P, cam = tr.points_holder_mm, tr.camera
+    for i in range(len(tr)):
+        est = epnp.solve(tr.points_px[i], cam, P)
+        assert est
+        for R, _ in est.candidates[1:]:
+            assert geodesic_deg(R, est.R_cam_holder) > 1.0
+        m = cam.normalize_px(tr.points_px[i])
+        # a gate of 0 px builds N = 3 too: the refined best is the same solution
+        R0, t0 = epnp.candidates(P, m, f_px=np.inf)[0]
+        assert geodesic_deg(R0, est.R_cam_holder) < 1e-6
+        assert np.linalg.norm(t0 - est.t_cam_holder_mm) < 1e-6
+    assert len(calls) == len(tr)  # only the f_px = inf calls crossed the gate at 1 px
+    # at 5 px most trials cross it (E_mean ~ 1.25 sigma)
+    tr5 = generate_trials(20, 5.0, seed=21)
+    calls.clear()
+    for i in range(len(tr5)):
+        epnp.candidates(tr5.points_holder_mm, tr5.camera.normalize_px(tr5.points_px[i]),
+                        f_px=tr5.camera.focal_px)
+    assert len(calls) >= 10

@@ -28,12 +28,16 @@ points, ``||c_a - c_b||^2 = ||C_a - C_b||^2`` (eq. 10), linear in the products
   solutions in ``lambda``: 6 minors, 10 products); the solutions are the eigenvectors of a 4x4
   multiplication matrix built from the null space of the linearised minors (notes 6.4).
 
+``N = 1`` and ``N = 2`` are always built; the ``N >= 3`` hypotheses only when the better of
+them has a mean reprojection error (``E_mean``) above 5 px, the reference's gate (below).
 Each hypothesis is scaled to the object's distances (least squares on the distances from the
-centroid, paper eq. 15 context), then refined by Gauss-Newton on all ``k`` betas over the
-distance residuals ``r_ab = ||C_a - C_b||^2 - ||c_a - c_b||^2`` (paper section 3.5; for the
-planar case notes 2.3: 3 residuals in 3 betas). The sign of ``beta`` is fixed by the orientation of
-the control points for a general set (``det [c_1 - c_0, c_2 - c_0, c_3 - c_0]`` has the sign of
-the world's, which keeps a mirrored structure out) and by positive mean depth for a planar set.
+centroid, paper eq. 15 context). As in the paper (section 3.5) and the reference, only the
+hypothesis of least reprojection error is refined, by Gauss-Newton on all ``k`` betas over the
+distance residuals ``r_ab = ||C_a - C_b||^2 - ||c_a - c_b||^2`` (for the planar case notes 2.3:
+3 residuals in 3 betas, a square Jacobian, so the step is Newton's ``J^-1 r``, on Python
+floats). The sign of ``beta`` is fixed by the orientation of the control points for a general
+set (``det [c_1 - c_0, c_2 - c_0, c_3 - c_0]`` has the sign of the world's, which keeps a
+mirrored structure out) and by positive mean depth for a planar set.
 The pose is the rigid alignment (:func:`~cutterpose.pnp.base.align_rigid`, AL-ok) of ``P`` to the
 camera-frame points ``X_i = sum_j alpha_ij c_j``.
 
@@ -46,24 +50,38 @@ Deviations from the reference code (notes sections 2 and 8):
     * Data-adapted control points, as in the IJCV paper, instead of fixed unit points (those
       depend on the units and condition the system badly in mm).
     * Planarity detected, any plane; the planar case uses 3 control points in the plane.
-    * Hypotheses ``N = 1..3`` (planar) / ``1..4`` (general) are all built and all refined,
-      without the reference's error gates (5/800 or 20 in normalised units).
-    * Gauss-Newton on the planar betas too (notes 2.3), 8 iterations (fewer once every step is at
-      rounding level), from every hypothesis;
-      hypotheses whose GN has not converged are dropped (unless none converged).
+    * The ``N >= 3`` gate in pixels: the reference builds ``N = 3`` (planar; ``3, 4`` general)
+      only when ``min(eps_1, eps_2) > 5/800`` (planar; ``> 20`` general, i.e. never) with eps
+      in normalised units, which is 5 px only for its f = 800 px camera (notes 2.1: ~15 px for
+      ours). Here the gate is ``E_mean > 5 px`` for the camera's own focal length
+      (:func:`solve` passes ``camera.focal_px`` to :func:`candidates`; called directly without
+      ``f_px``, the nominal 2464 px of the project cameras), the same for planar and general sets.
+      On the holder it runs at 5 px noise (81 % of trials), practically never at 1 to 3 px.
+    * Hypotheses are scored by ``E_mean`` of the camera-frame points ``X_i = sum_j alpha_ij c_j``
+      themselves (the reference scores the aligned pose): no alignment per hypothesis.
+    * Gauss-Newton on the planar betas too (notes 2.3), up to 8 iterations (fewer once the step
+      is at rounding level). A best hypothesis whose GN has not converged (last step above
+      1e-7 relative) is returned unrefined (the reference keeps the refined result only when its
+      ``E_mean`` is smaller). On the holder, refining only the best gives the same poses as
+      the earlier refine-every-hypothesis code in all 4000 trials of a 0.5 to 5 px sweep (to
+      1e-9 deg, the CSV's precision).
+    * A second candidate, for the ambiguity ratio of :func:`~cutterpose.pnp.base.select`, only
+      when it is a *different solution* of the distance equations: the next hypothesis by
+      ``E_mean`` that does not start within 1 % of the refined best (``beta`` up to its sign),
+      refined as well, and kept if it converged elsewhere. An unrefined neighbour of the best
+      would differ from it by a few hundredths of a degree and report a false ambiguity (ratio
+      near 1). At 1 to 3 px on the holder a second solution is found in about 1 % of trials, at
+      5 px (where the ``N = 3`` roots are built) in about half, with ratios mostly below 0.3.
     * Alignment AL-ok, never ``R -> -R`` (AL-E is wrong on planar points).
     * Sign by orientation (general) / depth (planar), not "negate all if any depth < 0".
-    * Candidates are returned for selection by RMS reprojection error (not ``E_mean``); after
-      refinement the hypotheses usually converge to the same betas; duplicates are merged and
-      only the best two distinct hypotheses (by reprojection error of the camera-frame points
-      ``X_i``) are returned: the selection and the ambiguity ratio need no more, and every
-      alignment costs time.
+    * ``N = 2`` takes the nearest rank-one product matrix (leading eigenvector) rather than
+      ``sqrt|b11|``, ``sqrt|b22| sign(b12)``.
 """
 
 from __future__ import annotations
 
 import math
-from functools import cache
+from functools import cache, lru_cache, partial
 
 import numpy as np
 from scipy.linalg.lapack import dgeev as _dgeev
@@ -86,6 +104,15 @@ __all__ = ["candidates", "solve"]
 _GN_ITERATIONS = 8
 _GN_AT_REST = 1e-14  # relative step below which Gauss-Newton has nothing left to do
 _SAME_BETA = 1e-6  # relative: GN from two hypotheses reached the same solution
+# a hypothesis within 1 % of the refined best converges onto it (measured on the holder, 1 to
+# 10 px: 97 to 69 % of such starts lie within 1 %, fewer than 0.05 % of those reaching another
+# solution do); it is not refined a second time
+_SAME_START = 1e-2
+# the N >= 3 gate of the reference, min(eps_1, eps_2) > 5/800 in normalised units, i.e. 5 px
+# for its f = 800 px camera; here 5 px for the actual focal length (``candidates(f_px=...)``),
+# else for the nominal one of the project cameras (synthetic 2464 px, table1 2475 px)
+_GATE_PX = 5.0
+_NOMINAL_F_PX = 2464.0
 # fixed generic coefficients of the linear forms in the multiplication matrix (notes 6.4)
 _G = np.array([1.0, 0.37, -0.61, 0.23])
 _H = np.array([0.29, -0.83, 0.47, 1.0])
@@ -257,11 +284,12 @@ def _relinearise(L: np.ndarray, rho: np.ndarray, N: int) -> list[np.ndarray]:
     return list(_betas_from_products(prods[:, _tri(N)[1]]))
 
 
-def _hypotheses(dots: np.ndarray, rho: np.ndarray, n_max: int) -> list[np.ndarray]:
-    """Initial betas (padded to ``n_max``) for ``N = 1..n_max``; ``dots`` (pairs, n_max, n_max)
-    holds ``Delta_k . Delta_l`` per control-point pair."""
+def _hypotheses(dots: np.ndarray, rho: np.ndarray, n_max: int, start: int = 1
+                ) -> list[list[float]]:
+    """Initial betas (padded to ``n_max``) for ``N = start..n_max``; ``dots`` (pairs, n_max,
+    n_max) holds ``Delta_k . Delta_l`` per control-point pair."""
     out = []
-    for N in range(1, n_max + 1):
+    for N in range(start, n_max + 1):
         iu, _, w = _tri(N)
         L = dots[:, iu[0], iu[1]] * w
         if N == 1:
@@ -314,11 +342,126 @@ def _gauss_newton(beta: np.ndarray, dots: np.ndarray, rho: np.ndarray):
     return beta, converged
 
 
+def _two_by_two_beta(b11: float, b12: float, b22: float) -> list[float]:
+    """:func:`_beta_from_products` of ``[[b11, b12], [b12, b22]]`` in closed form (floats): the
+    leading eigenvector scaled by the square root of its eigenvalue (sign arbitrary)."""
+    h = 0.5 * (b11 - b22)
+    root = math.hypot(h, b12)
+    lam = 0.5 * (b11 + b22) + root
+    if lam <= 0.0:
+        return [0.0, 0.0]
+    # of the two eigenvector forms (b12, lam - b11) and (lam - b22, b12) take the longer one
+    # (the other vanishes when b12 -> 0)
+    x1, y1 = b12, lam - b11
+    x2, y2 = lam - b22, b12
+    if x1 * x1 + y1 * y1 < x2 * x2 + y2 * y2:
+        x1, y1 = x2, y2
+    nrm = math.hypot(x1, y1)
+    if nrm == 0.0:  # b11 = b22, b12 = 0: a double eigenvalue, any unit vector
+        x1, y1, nrm = 1.0, 0.0, 1.0
+    s = math.sqrt(lam) / nrm
+    return [x1 * s, y1 * s]
+
+
+def _solve3(A: list, b: list) -> list[float]:
+    """``A^-1 b`` for a 3x3 system on Python floats (adjugate); raises ``LinAlgError`` on an
+    exactly singular matrix, as ``np.linalg.solve`` does."""
+    (a00, a01, a02), (a10, a11, a12), (a20, a21, a22) = A
+    c00, c10, c20 = a11 * a22 - a12 * a21, a12 * a20 - a10 * a22, a10 * a21 - a11 * a20
+    det = a00 * c00 + a01 * c10 + a02 * c20
+    if det == 0.0:
+        raise np.linalg.LinAlgError("Singular matrix")
+    b0, b1, b2 = b
+    k = 1.0 / det
+    return [(c00 * b0 + (a02 * a21 - a01 * a22) * b1 + (a01 * a12 - a02 * a11) * b2) * k,
+            (c10 * b0 + (a00 * a22 - a02 * a20) * b1 + (a02 * a10 - a00 * a12) * b2) * k,
+            (c20 * b0 + (a01 * a20 - a00 * a21) * b1 + (a00 * a11 - a01 * a10) * b2) * k]
+
+
+def _hypotheses_low(dl: list, rho: list, n_max: int) -> list[list[float]]:
+    """Betas (padded to ``n_max``) of ``N = 1`` and ``N = 2`` on Python floats; ``dl[p][k][l]``
+    is ``Delta_k . Delta_l`` of control-point pair p."""
+    # N = 2: least squares (normal equations) for (b11, b12, b22), then the nearest rank one
+    s00 = s01 = s02 = s11 = s12 = s22 = y0 = y1 = y2 = 0.0
+    for d, r in zip(dl, rho, strict=True):
+        x0, x1, x2 = d[0][0], 2.0 * d[0][1], d[1][1]
+        s00 += x0 * x0
+        s01 += x0 * x1
+        s02 += x0 * x2
+        s11 += x1 * x1
+        s12 += x1 * x2
+        s22 += x2 * x2
+        y0 += x0 * r
+        y1 += x1 * r
+        y2 += x2 * r
+    if s00 == 0.0:  # what np.linalg.solve raises on a singular system
+        raise np.linalg.LinAlgError("Singular matrix")
+    # N = 1: least squares for beta_1^2, the first row and column of the same system
+    h1 = [math.sqrt(max(y0 / s00, 0.0))]
+    h2 = _two_by_two_beta(*_solve3([[s00, s01, s02], [s01, s11, s12], [s02, s12, s22]],
+                                   [y0, y1, y2]))
+    pad = [0.0] * n_max
+    return [(h1 + pad)[:n_max], (h2 + pad)[:n_max]]
+
+
+def _newton_planar(beta: list, G: list, rho: list):
+    """Gauss-Newton on the 3 planar distance residuals in the 3 betas (notes 2.3) on Python
+    floats. ``G[p]`` is ``(g00, g01, g02, g11, g12, g22)`` of the symmetric ``Delta_k . Delta_l``
+    of pair p, so ``||c_a - c_b||^2 = beta^T G_p beta``, the residual ``rho_p - beta^T G_p beta``
+    and its gradient ``2 G_p beta``. J is square, so the Gauss-Newton step ``(J^T J)^-1 J^T r``
+    is the Newton step ``J^-1 r`` (adjugate form). Returns the betas and whether they converged
+    (last step below 1e-7 relative)."""
+    b0, b1, b2 = beta
+    s2 = math.inf
+    for it in range(_GN_ITERATIONS):
+        J = []
+        r = []
+        for (g00, g01, g02, g11, g12, g22), rp in zip(G, rho, strict=True):
+            u = g00 * b0 + g01 * b1 + g02 * b2
+            v = g01 * b0 + g11 * b1 + g12 * b2
+            w = g02 * b0 + g12 * b1 + g22 * b2
+            J.append((u, v, w))
+            r.append(rp - (u * b0 + v * b1 + w * b2))
+        (a, b, c), (d, e, f), (g, h, i) = J
+        A0, A1, A2 = e * i - f * h, c * h - b * i, b * f - c * e
+        det = a * A0 + d * A1 + g * A2
+        if not det or not math.isfinite(det):
+            return [b0, b1, b2], False
+        r0, r1, r2 = r
+        # J = 2 Gb: the step J^-1 r = (Gb)^-1 r / 2
+        k = 0.5 / det
+        x0 = (A0 * r0 + A1 * r1 + A2 * r2) * k
+        x1 = ((f * g - d * i) * r0 + (a * i - c * g) * r1 + (c * d - a * f) * r2) * k
+        x2 = ((d * h - e * g) * r0 + (b * g - a * h) * r1 + (a * e - b * d) * r2) * k
+        b0, b1, b2 = b0 + x0, b1 + x1, b2 + x2
+        s2 = 4.0 * (x0 * x0 + x1 * x1 + x2 * x2)  # the unhalved step, as in _gauss_newton
+        nb2 = b0 * b0 + b1 * b1 + b2 * b2
+        # at its fixed point to rounding: the remaining iterations would move beta ~1e-16
+        if it >= 3 and s2 <= _GN_AT_REST**2 * nb2:
+            break
+    return [b0, b1, b2], s2 < 1e-14 * nb2
+
+
+def _refine(beta: list, planar: bool, G, dots: np.ndarray, rho: np.ndarray, rhol: list):
+    """Gauss-Newton from one hypothesis: (betas, converged)."""
+    if planar:
+        return _newton_planar(beta, G, rhol)
+    b, conv = _gauss_newton(np.array([beta]), dots, rho)
+    return b[0].tolist(), bool(conv[0])
+
+
+def _mean_error(X: np.ndarray, m: np.ndarray) -> np.ndarray:
+    """Mean reprojection error (E_mean, normalised units) of camera-frame points X (H, n, 3)."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        d = X[..., :2] / X[..., 2:] - m
+        return np.sqrt(np.sum(d * d, axis=2)).sum(axis=1) / X.shape[1]
+
+
 def _model(P: np.ndarray):
     """Everything that depends on the object points only, computed once per model (cached by
     :func:`~cutterpose.pnp.base.model_cache`)."""
     cache = model_cache(P)
-    model = cache.get("epnp")
+    model = cache.get("epnp-v2")  # (a new key: the layout of the tuple changed)
     if model is None:
         planar = is_planar(P)
         if not planar and len(P) < 4:
@@ -326,70 +469,90 @@ def _model(P: np.ndarray):
         alphas, C, k, hand = _control_points(P, planar)
         O = (alphas[:, :, None] * alphas[:, None, :]).reshape(len(P), -1)
         ia, ib = np.triu_indices(k + 1, 1)
+        # Delta^(ab) = c_a - c_b for every pair as one product with a +-1 matrix
+        Dm = np.zeros((len(ia), k + 1))
+        Dm[np.arange(len(ia)), ia] = 1.0
+        Dm[np.arange(len(ia)), ib] = -1.0
         rho = np.sum((C[ia] - C[ib]) ** 2, axis=1)
         dw = np.linalg.norm(P - P.mean(axis=0), axis=1)
-        asum = alphas.sum(axis=0)
-        for arr in (alphas, O, rho, dw, asum):
+        # X - Xbar = (alphas - mean alphas) c: the centred alphas give the centred points
+        ac = alphas - alphas.mean(axis=0)
+        for arr in (alphas, O, Dm, rho, dw, ac):
             arr.flags.writeable = False
-        model = cache["epnp"] = (planar, alphas, O, k, hand, ia, ib, rho, dw, asum)
+        model = cache["epnp-v2"] = (planar, alphas, O, k, hand, Dm, rho, rho.tolist(), dw, ac)
     return model
 
 
-def candidates(P: np.ndarray, m: np.ndarray) -> list[Candidate]:
-    """EPnP poses, one per distinct refined hypothesis; see the module docstring."""
-    planar, alphas, O, k, hand, ia, ib, rho, dw, asum = _model(P)
+def candidates(P: np.ndarray, m: np.ndarray, f_px: float | None = None) -> list[Candidate]:
+    """EPnP poses: the refined best hypothesis, and a second, different solution when there is
+    one (see the module docstring). ``f_px`` (the focal length in pixels) only sets the N >= 3
+    gate; without it the nominal focal length of the project cameras is assumed."""
+    planar, alphas, O, k, hand, Dm, rho, rhol, dw, ac = _model(P)
     n_max = k + 1
+    n = len(P)
     W = _kernel(alphas, m, n_max, O)  # (n_max, k+1, 3)
-    D = W[:, ia] - W[:, ib]  # (n_max, pairs, 3)
-    Df = D.transpose(1, 0, 2)
+    Df = (Dm @ W).transpose(1, 0, 2)  # (pairs, n_max, 3)
     dots = Df @ Df.transpose(0, 2, 1)  # (pairs, n_max, n_max): Delta_k . Delta_l
-    betas = np.array(_hypotheses(dots, rho, n_max))
-    Wf = W.reshape(n_max, -1)
-    # camera-frame points X = alphas c, c = sum_k beta_k W_k (H, k+1, 3)
-    X = alphas @ (betas @ Wf).reshape(-1, k + 1, 3)
-    # scale to the object's distances from the centroid
-    Xc = X - X.sum(axis=1, keepdims=True) / X.shape[1]
-    dc = np.sqrt(np.sum(Xc * Xc, axis=2))
-    den = np.sum(dc * dc, axis=1)
-    ok = den > 0
-    if not ok.all():
-        betas, dc, den = betas[ok], dc[ok], den[ok]
-    betas = betas * (dc @ dw / den)[:, None]
-    betas, converged = _gauss_newton(betas, dots, rho)
-    if converged.any() and not converged.all():
-        betas = betas[converged]
+    dl = dots.tolist()
+    Y = alphas @ W  # X = alphas c = sum_k beta_k (alphas W_k): (n_max, n, 3)
+    Yf = Y.reshape(n_max, -1)
 
-    c = (betas @ Wf).reshape(-1, k + 1, 3)
-    if planar:
-        depth = c[:, :, 2] @ asum
-        sign = np.where(depth < 0, -1.0, 1.0)
-    else:
-        # det [c_j - c_0] = det(R) det(diag(sigma) V^T): its sign must be the frame's
-        sign = np.sign(np.linalg.det(c[:, 1:] - c[:, :1])) * hand
-    c = c * sign[:, None, None]
-    X = alphas @ c
+    hyps = _hypotheses_low(dl, rhol, n_max)
+    X = (np.array(hyps) @ Yf).reshape(-1, n, 3)
+    e = _mean_error(X, m)  # invariant to the scale and sign of beta
+    gate = _GATE_PX / (f_px if f_px else _NOMINAL_F_PX)
+    if not min(e.tolist()) <= gate:  # NaN runs them too
+        more = _hypotheses(dots, rho, n_max, start=3)
+        if more:
+            hyps += more
+            X = (np.array(hyps) @ Yf).reshape(-1, n, 3)
+            e = _mean_error(X, m)
 
-    # score on the camera-frame points themselves (no alignment needed), best first
-    with np.errstate(divide="ignore", invalid="ignore"):
-        d = X[..., :2] / X[..., 2:] - m
-        e = np.sum(d * d, axis=(1, 2))
-    order = np.argsort(e)  # NaN sorts last, as inf; the loop stops at the first of either
-    # hypotheses that converged to the same betas are one candidate; select() needs only the
-    # best and the runner-up (ambiguity ratio), so two distinct ones are aligned at most
-    kept: list[int] = []
-    bl = betas.tolist()
-    el = e.tolist()
-    for h in order.tolist():
+    # scale to the object's distances from the centroid (least squares), positive mean depth
+    Xc = (np.array(hyps) @ (ac @ W).reshape(n_max, -1)).reshape(-1, n, 3)
+    dc2 = np.sum(Xc * Xc, axis=2)
+    dc = np.sqrt(dc2)
+    sc = ((dc @ dw) / dc2.sum(axis=1)).tolist()
+    zk = Y[:, :, 2].sum(axis=1).tolist()  # sum of the depths of beta = e_k
+    bl, el = [], []
+    for beta, eh, s in zip(hyps, e.tolist(), sc, strict=True):
+        if not (math.isfinite(eh) and math.isfinite(s) and s > 0):
+            eh = math.inf
+        elif sum(b * z for b, z in zip(beta, zk, strict=True)) < 0:
+            s = -s
+        bl.append([b * s for b in beta])
+        el.append(eh)
+    order = sorted(range(len(bl)), key=el.__getitem__)
+    if not el[order[0]] < math.inf:
+        return []
+
+    G = [(d[0][0], d[0][1], d[0][2], d[1][1], d[1][2], d[2][2]) for d in dl] if planar else None
+    best, conv = _refine(bl[order[0]], planar, G, dots, rho, rhol)
+    if not conv:  # the best hypothesis as it is (a point on GN's path would be arbitrary)
+        best = bl[order[0]]
+    kept = [best]
+    # a second solution, for the ambiguity ratio: the next hypothesis that does not start next
+    # to the refined best (those converge onto it), refined, if it reaches a different solution
+    nb = _dist(best, None)
+    for h in order[1:]:
         if not el[h] < math.inf:
             break
-        bh = bl[h]
-        if all(_dist(bh, bl[g]) > _SAME_BETA * _dist(bl[g], None) for g in kept):
-            kept.append(h)
-            if len(kept) == 2:
-                break
-    if not kept:
-        return []
-    return align_rigid_many(P, X[kept])
+        if _dist_pm(bl[h], best) <= _SAME_START * nb:
+            continue
+        second, conv = _refine(bl[h], planar, G, dots, rho, rhol)
+        if conv and _dist_pm(second, best) > _SAME_BETA * nb:
+            kept.append(second)
+        break
+
+    if planar:  # positive mean depth (GN keeps the sign; checked again all the same)
+        kept = [b if sum(x * z for x, z in zip(b, zk, strict=True)) >= 0 else [-x for x in b]
+                for b in kept]
+    else:
+        # det [c_j - c_0] = det(R) det(diag(sigma) V^T): its sign must be the frame's
+        c = (np.array(kept) @ W.reshape(n_max, -1)).reshape(-1, k + 1, 3)
+        sign = (np.sign(np.linalg.det(c[:, 1:] - c[:, :1])) * hand).tolist()
+        kept = [[x * sg for x in b] for b, sg in zip(kept, sign, strict=True)]
+    return align_rigid_many(P, (np.array(kept) @ Yf).reshape(-1, n, 3))
 
 
 def _dist(a: list, b: list | None) -> float:
@@ -399,4 +562,19 @@ def _dist(a: list, b: list | None) -> float:
     return sum((x - y) ** 2 for x, y in zip(a, b, strict=True)) ** 0.5
 
 
-solve = make_solver("epnp", candidates, min_points=4)
+def _dist_pm(a: list, b: list) -> float:
+    """``min(||a - b||, ||a + b||)``: beta and -beta are the same solution up to the sign."""
+    return min(_dist(a, b), sum((x + y) ** 2 for x, y in zip(a, b, strict=True)) ** 0.5)
+
+
+def solve(points_px, camera, model):
+    """epnp: ``solve(points_px, camera, model) -> PoseEstimate`` (the common wrapper of
+    :func:`~cutterpose.pnp.base.make_solver`, with the camera's focal length passed on to
+    :func:`candidates` for the gate in pixels)."""
+    f = getattr(camera, "focal_px", None)
+    return _solver_for(float(f) if f else None)(points_px, camera, model)
+
+
+@lru_cache(maxsize=8)
+def _solver_for(f_px: float | None):
+    return make_solver("epnp", partial(candidates, f_px=f_px), min_points=4)
