@@ -155,3 +155,15 @@ def test_model_fallback_on_worn_edges():
     assert f.corners_px.shape == (20, 2)
     # worn edges move the visible edge off the geometric one (renderer: a 4 mm band)
     assert corner_rms(f.corners_px, r.corners_px) < 4.0
+
+
+def test_edge_wear_indicator_separates_worn_from_clean_and_blurred():
+    # half size: at 1/4 the 1-4 mm worn band is within the blur of the edge (1 px ~ 1 mm)
+    cam, hol = small_camera(0.5), default_holder()
+    pose = Pose.from_euler(3, -4, 5, 10, -8, 610)
+    dark = {}
+    for preset in ("easy", "blurred", "worn"):
+        f = detect_features(render_holder(pose, cam, hol, preset, seed=1).image, cam, hol)
+        assert f.edge_darkening.shape == (20,) and f.inward_ideal.shape == (20, 2)
+        dark[preset] = float(np.nanmedian(np.abs(f.edge_darkening)))
+    assert dark["easy"] < 0.05 and dark["blurred"] < 0.05 and dark["worn"] > 0.15

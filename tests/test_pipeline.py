@@ -78,3 +78,31 @@ def test_demo_prints_pose_truth_error_and_writes_overlay(tmp_path):
     assert "measured" in text and "true" in text and "error" in text
     assert (tmp_path / "demo_overlay.png").stat().st_size > 1000
     assert (tmp_path / "demo.json").is_file()
+
+
+def test_worn_edges_never_give_a_tight_biased_pose():
+    """A worn edge darkens the face towards the pocket: the edges come out too far outwards
+    and Z too short, which the residuals do not show. The wear's possible pose shift must be
+    in the std (or the pose refused with the reason), never a tight std on a biased pose."""
+    cam = small_camera(0.5)  # at 1/4 the worn band is within the edge's blur
+    pose = Pose.from_euler(3, -4, 5, 10, -8, 610)
+    r = render_holder(pose, cam, default_holder(), "worn", seed=1)
+    m = measure(r.image, cam, default_holder(), "dm+")
+    f = m.features
+    assert np.nanmedian(np.abs(f.edge_darkening)) > 0.15
+    assert m.pose is not None
+    err = np.abs(m.pose.dof - pose.dof)
+    assert m.quality.edge_bias_dof is not None and m.quality.edge_bias_dof[5] > 0
+    if m.ok:
+        assert np.all(err[3:] < 3 * m.std_dof[3:] + 0.05)
+    else:
+        assert "edges worn" in m.quality.reason or "corner" in m.quality.reason
+
+
+def test_clean_edges_have_no_wear_bias(rendered):
+    cam, r = rendered
+    m = measure(r.image, cam, default_holder(), "dm+")
+    assert m.ok, m.quality.reason
+    assert np.nanmedian(np.abs(m.features.edge_darkening)) < 0.05
+    assert m.quality.edge_offset_px < 0.05 and m.quality.note == ""
+    assert np.all(m.quality.edge_bias_dof < 0.05)

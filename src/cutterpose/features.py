@@ -57,7 +57,8 @@ from .holder import Holder
 from .pose import Pose
 
 __all__ = ["FeatureParams", "Features", "Segment", "load_image", "check_image", "find_roi",
-           "detect_features", "segment_contour", "refine_lines", "intersect_consecutive"]
+           "detect_features", "segment_contour", "refine_lines", "intersect_consecutive",
+           "edge_wear"]
 
 
 #: focal length of the paper's camera in pixels (Table 1: f / s_y)
@@ -159,6 +160,12 @@ class Features:
     timings_ms : wall time per stage.
     segmentation : "contour" (the paper's segmentation gave the 20 segments) or "model" (the
         fallback: lines from the holder model fitted to the contour, then refined).
+    edge_darkening : (N,) per line, how much darker the face is just outside the edge than
+        farther out, as a fraction of the edge contrast (:func:`edge_wear`; ~0 for a clean
+        edge, 0.3-0.4 for a worn one). None without refinement.
+    edge_offset_px : (N,) per line, how far (px) the edge estimate may lie outside the true edge
+        because of that darkening (:func:`edge_wear`).
+    inward_ideal : (N, 2) unit normals of the lines towards the pocket (ideal px).
     """
 
     corners_px: np.ndarray
@@ -175,6 +182,9 @@ class Features:
     refined: bool
     timings_ms: dict = field(default_factory=dict)
     segmentation: str = "contour"
+    edge_darkening: np.ndarray | None = None
+    edge_offset_px: np.ndarray | None = None
+    inward_ideal: np.ndarray | None = None
 
 
 # ------------------------------------------------------------------------------------------
@@ -712,6 +722,72 @@ def _refine_pass(img, roi_origin, camera, lines_ideal, spans, inward, params, of
     return out_lines, edges
 
 
+def edge_wear(image: np.ndarray, roi_origin: np.ndarray, camera: Camera, lines_ideal: np.ndarray,
+              spans: list, inward: np.ndarray, params: FeatureParams):
+    """How far each refined edge may lie outside the true edge because the face is not uniform
+    up to it (worn, rounded, dull or stained edge); beyond the paper.
+
+    A clean edge is a step from the pocket's grey to a uniform face blurred by the optics: the
+    face just outside the blur (2 blur half-widths from the edge) is as bright as farther out.
+    On a worn edge the face darkens towards the edge, part of the edge's contrast lies outside
+    the sharp step and the gradient's centroid (the refined edge) is pulled outwards by about
+    that fraction of the transition's width; where the true edge lies within the transition
+    the image cannot tell. Per line, on the median profile along its normal:
+
+    - ``w``: the blur half-width, from the gradient peak to the pocket-side 25 % crossing (the
+      pocket side is not worn);
+    - ``darkening = 1 - (I(e + 2w) - I_pocket) / (I_face_far - I_pocket)``, ``I_pocket =
+      I(e - 2w)``, ``I_face_far`` the median of ``I`` over ``[e + 2w + 6, e + 2w + 12]`` px;
+    - ``offset_px = max(|darkening| - 0.05, 0) * w``: the possible outward bias (the 0.05 floor
+      is above the +-0.01 measured on unworn faces).
+
+    Returns
+    -------
+    darkening, offset_px : (N,) per line (NaN where the profile has no usable edge).
+    """
+    step, hw = 0.5, params.refine_half_width_px
+    offsets = np.arange(-3 * hw, 5 * hw + 1e-9, step)  # outwards (face) positive
+    img = image.astype(np.float32)
+    n = len(lines_ideal)
+    dark, off = np.full(n, np.nan), np.full(n, np.nan)
+    for k, (t0, t1, c, d) in enumerate(spans):
+        t0, t1 = t0 + 2 * params.refine_trim_px, t1 - 2 * params.refine_trim_px
+        if t1 - t0 < 8:
+            continue
+        L = lines_ideal[k]
+        ts = np.arange(t0, t1, 4.0)  # a median profile: every 4th px is plenty
+        base = c + ts[:, None] * d
+        base = base - ((base @ L[:2]) + L[2])[:, None] * L[:2]
+        q = base[:, None, :] - offsets[None, :, None] * inward[k]
+        obs = camera.distort_px(q.reshape(-1, 2)) - roi_origin
+        prof = cv2.remap(img, obs[:, 0].reshape(q.shape[:2]).astype(np.float32),
+                         obs[:, 1].reshape(q.shape[:2]).astype(np.float32), cv2.INTER_LINEAR,
+                         borderMode=cv2.BORDER_REPLICATE)
+        m = gaussian_filter1d(np.median(prof, axis=0), params.refine_sigma_px / step)
+        g = np.diff(m)
+        go = offsets[:-1] + step / 2
+        near = np.abs(go) <= hw
+        j = int(np.argmax(np.where(near, g, -np.inf)))
+        if g[j] <= 0:
+            continue
+        i = j
+        while i > 0 and g[i] > 0.25 * g[j]:
+            i -= 1
+        w = max(go[j] - go[i], step)
+        e = go[j]
+        lo, hi = e + 2 * w + 6, e + 2 * w + 12
+        far = (offsets >= lo) & (offsets <= hi)
+        if not far.any() or e - 2 * w < offsets[0]:
+            continue
+        pocket = np.interp(e - 2 * w, offsets, m)
+        contrast = float(np.median(m[far]) - pocket)
+        if contrast <= 0:
+            continue
+        dark[k] = 1.0 - (np.interp(e + 2 * w, offsets, m) - pocket) / contrast
+        off[k] = max(abs(dark[k]) - 0.05, 0.0) * w
+    return dark, off
+
+
 # ------------------------------------------------------------------------------------------
 def detect_features(image: np.ndarray, camera: Camera, holder: Holder,
                     params: FeatureParams | None = None) -> Features:
@@ -777,11 +853,16 @@ def detect_features(image: np.ndarray, camera: Camera, holder: Holder,
         try:
             _check_corners_on_contour(corners_ideal, corners_px, contour_ideal, params)
             lap("corners")
+            dark = off = None
+            if params.refine:
+                dark, off = edge_wear(sub, origin, camera, lines, spans, inward, params)
+                lap("edge wear")
             return Features(corners_px=corners_px, corners_ideal_px=corners_ideal,
                             lines_ideal=lines, lines_threshold_ideal=lines0, segments=segs,
                             primitives=prims, contour_px=contour_px, edge_points_px=edges,
                             roi=roi, roi_score=score, threshold=int(level),
-                            refined=params.refine, timings_ms=timings)
+                            refined=params.refine, timings_ms=timings, edge_darkening=dark,
+                            edge_offset_px=off, inward_ideal=inward)
         except FeatureError as e:  # a hidden corner: the model fit may still see its lines
             msg = str(e)
     else:
@@ -809,11 +890,14 @@ def detect_features(image: np.ndarray, camera: Camera, holder: Holder,
     except FeatureError as e:
         raise FeatureError(f"{msg} | model fit: {e}") from None
     lap("corners")
+    dark, off = edge_wear(sub, origin, camera, lines, spans, inward, params)
+    lap("edge wear")
     return Features(corners_px=corners_px, corners_ideal_px=corners_ideal, lines_ideal=lines,
                     lines_threshold_ideal=lines0, segments=segs, primitives=[],
                     contour_px=contour_px, edge_points_px=edges, roi=roi, roi_score=score,
                     threshold=int(level), refined=True, timings_ms=timings,
-                    segmentation="model")
+                    segmentation="model", edge_darkening=dark, edge_offset_px=off,
+                    inward_ideal=inward)
 
 
 def _corners(lines, camera: Camera):

@@ -44,7 +44,7 @@ from .methods import get_method
 from .pose import Pose, rotation_from_euler_deg
 
 __all__ = ["QualityLimits", "Quality", "Measurement", "measure", "measure_features",
-           "order_for_model", "pose_std", "demo", "DOF_NAMES"]
+           "order_for_model", "pose_std", "demo", "DOF_NAMES", "edge_wear_effect"]
 
 DOF_NAMES = ("alpha_deg", "beta_deg", "gamma_deg", "X_mm", "Y_mm", "Z_mm")
 
@@ -64,6 +64,9 @@ class QualityLimits:
     range_half_width_dof: tuple = (10.0, 10.0, 10.0, 20.0, 20.0, 20.0)
     range_tolerance_dof: tuple = (2.0, 2.0, 2.0, 5.0, 5.0, 5.0)
     max_std_dof: tuple = (0.5, 0.5, 0.5, 2.0, 2.0, 2.0)
+    #: worn edges: the largest pose shift the edges' possible outward offset may cause
+    #: (:func:`edge_wear_effect`), deg and mm
+    max_edge_bias_dof: tuple = (0.2, 0.2, 0.2, 0.5, 0.5, 0.5)
 
 
 @dataclass
@@ -74,10 +77,17 @@ class Quality:
     reason: str = ""
     rms_px: float = math.nan
     ambiguity_ratio: float = math.nan
+    #: (6,) pose shift if every edge moved inwards by its possible wear offset (deg, mm)
+    edge_bias_dof: np.ndarray | None = None
+    edge_offset_px: float = math.nan   #: median possible outward offset of the edges
+    note: str = ""                     #: a warning that does not refuse the pose
 
     def to_dict(self) -> dict:
         return {"ok": self.ok, "reason": self.reason, "rms_residual_px": _f(self.rms_px),
-                "ambiguity_ratio": _f(self.ambiguity_ratio)}
+                "ambiguity_ratio": _f(self.ambiguity_ratio), "note": self.note,
+                "edge_offset_px": _f(self.edge_offset_px),
+                "edge_bias": None if self.edge_bias_dof is None else
+                {k: _f(v) for k, v in zip(DOF_NAMES, self.edge_bias_dof)}}
 
 
 @dataclass
@@ -176,6 +186,48 @@ def _project_ideal(dof: np.ndarray, camera: Camera, holder: Holder) -> np.ndarra
     return x @ K[:2, :2].T + K[:2, 2]
 
 
+def _jacobian(dof, camera, holder):
+    h = np.array([1e-4, 1e-4, 1e-4, 1e-3, 1e-3, 1e-3])
+    J = np.empty((holder.points_holder_mm.shape[0] * 2, 6))
+    for k in range(6):
+        dp = np.zeros(6)
+        dp[k] = h[k]
+        J[:, k] = ((_project_ideal(dof + dp, camera, holder)
+                    - _project_ideal(dof - dp, camera, holder)) / (2 * h[k])).ravel()
+    return J
+
+
+def edge_wear_effect(pose: Pose, features: Features, camera: Camera, holder: Holder
+                     ) -> tuple[np.ndarray, float]:
+    """Pose shift (6,) if every line moved inwards by the median of the lines' possible wear
+    offsets (``features.edge_offset_px``), linearised at ``pose``; and that offset (px).
+
+    The residuals cannot show this: a uniform offset of the edges is close to a change of scale
+    (depth), so the shift is a systematic error the residual-based std misses.
+    """
+    off = features.edge_offset_px
+    if off is None or features.inward_ideal is None or not np.any(np.isfinite(off)):
+        return np.zeros(6), 0.0
+    # wear acts on the whole outline: the median offset, moved uniformly (one line darkened by
+    # an occluder or a stain beside it is not wear, and the corner checks see local defects)
+    off = np.full(len(off), float(np.nanmedian(off)))
+    from .features import intersect_consecutive
+
+    L = np.array(features.lines_ideal, float)
+    # moving the line by off along the inward normal n: c' = c - off (a, b) . n
+    L[:, 2] -= off * (L[:, :2] * features.inward_ideal).sum(axis=1)
+    moved = intersect_consecutive(L)
+    if not np.all(np.isfinite(moved)):
+        return np.full(6, np.nan), float(np.median(off))
+    dof = pose.dof
+    proj = _project_ideal(dof, camera, holder)
+    J = _jacobian(dof, camera, holder)
+    a = _match_to_projection(np.asarray(features.corners_ideal_px, float), proj)
+    b = _match_to_projection(moved, proj)
+    shift = np.linalg.lstsq(J, (b - a).ravel(), rcond=None)[0]
+    return np.abs(shift), float(np.median(off))
+
+
 def pose_std(pose: Pose, corners_ideal_px: np.ndarray, camera: Camera, holder: Holder
              ) -> tuple[np.ndarray, np.ndarray]:
     """Per-DOF standard deviations from the residuals, ``s^2 (J^T J)^-1`` (module doc).
@@ -189,13 +241,7 @@ def pose_std(pose: Pose, corners_ideal_px: np.ndarray, camera: Camera, holder: H
     proj = _project_ideal(dof, camera, holder)
     det = _match_to_projection(np.asarray(corners_ideal_px, float), proj)
     r = (det - proj)
-    h = np.array([1e-4, 1e-4, 1e-4, 1e-3, 1e-3, 1e-3])
-    J = np.empty((r.size, 6))
-    for k in range(6):
-        dp = np.zeros(6)
-        dp[k] = h[k]
-        J[:, k] = ((_project_ideal(dof + dp, camera, holder)
-                    - _project_ideal(dof - dp, camera, holder)) / (2 * h[k])).ravel()
+    J = _jacobian(dof, camera, holder)
     dof_free = r.size - 6
     s2 = float(np.sum(r ** 2)) / max(dof_free, 1)
     try:
@@ -254,13 +300,21 @@ def ambiguity_ratio(est: PoseEstimate, corners_ideal_px, camera: Camera, holder:
     return e0 / e1 if e1 > 0 else 1.0
 
 
-def _verdict(est: PoseEstimate, std, r, limits: QualityLimits, amb: float = math.nan
-             ) -> Quality:
+def _bias_text(bias) -> str:
+    return ", ".join(f"{n} {b:.2f} {'deg' if k < 3 else 'mm'}"
+                     for k, (n, b) in enumerate(zip(DOF_NAMES, bias)))
+
+
+def _verdict(est: PoseEstimate, std, r, limits: QualityLimits, amb: float = math.nan,
+             bias=None, offset_px: float = math.nan) -> Quality:
     if est is None or not est:
         return Quality(False, f"no pose: {est.reason if est is not None else 'not solved'}",
                        ambiguity_ratio=amb)
     rms = float(np.sqrt(np.mean(np.sum(r ** 2, axis=1))))
-    q = Quality(True, "", rms, amb)
+    q = Quality(True, "", rms, amb, bias, offset_px)
+    if bias is not None and np.all(np.isfinite(bias)) and offset_px > 0.1:
+        q.note = (f"edges worn: contour position uncertain by ~{offset_px:.1f} px, pose may be "
+                  f"biased by {_bias_text(bias)} (included in the std)")
     dof = Pose(est.R_cam_holder, est.t_cam_holder_mm).dof
     lo = np.subtract(limits.range_center_dof, limits.range_half_width_dof)
     hi = np.add(limits.range_center_dof, limits.range_half_width_dof)
@@ -279,6 +333,12 @@ def _verdict(est: PoseEstimate, std, r, limits: QualityLimits, amb: float = math
     elif math.isfinite(amb) and amb > limits.max_ambiguity_ratio:
         q.ok, q.reason = False, (f"planar ambiguity: a second pose fits almost as well (ratio "
                                  f"{amb:.2f} > {limits.max_ambiguity_ratio})")
+    elif bias is not None and (not np.all(np.isfinite(bias))
+                               or np.any(bias > np.asarray(limits.max_edge_bias_dof))):
+        q.ok, q.reason = False, (
+            f"edges worn: contour position uncertain by ~{q.edge_offset_px:.1f} px, pose may "
+            f"be biased by {_bias_text(bias)} (limits "
+            f"{list(limits.max_edge_bias_dof)})")
     elif not np.all(np.isfinite(std)) or np.any(std > np.asarray(limits.max_std_dof)):
         q.ok, q.reason = False, f"pose too uncertain: std {np.round(std, 3).tolist()}"
     return q
@@ -302,8 +362,13 @@ def measure_features(features: Features, camera: Camera, holder: Holder, method:
     if est:
         pose = Pose(est.R_cam_holder, est.t_cam_holder_mm)
         std, r = pose_std(pose, features.corners_ideal_px, camera, holder)
+        bias, offset_px = edge_wear_effect(pose, features, camera, holder)
+        # a systematic error the residuals do not show: added to the reported std
+        std = np.sqrt(std ** 2 + bias ** 2)
+    else:
+        bias, offset_px = None, math.nan
     amb = ambiguity_ratio(est, features.corners_ideal_px, camera, holder)
-    q = _verdict(est, std, r, limits, amb)
+    q = _verdict(est, std, r, limits, amb, bias, offset_px)
     timings["quality"] = (time.perf_counter() - t0) * 1e3
     return Measurement(method, pose, std, q, features.corners_px, features, est, timings)
 
