@@ -36,7 +36,7 @@ templates, 14.6 MB); finer levels are projected on the fly. The paper's full lib
 **dm+** (ours). DM's answer is capped by the grid (0.1 mm / 0.1 deg) and by the integer-pixel
 distance image. ``dm+`` continues from it with the exact distance of every projected model corner
 to a detected corner (ideal pixels, ``cKDTree`` / Hungarian assignment) and least squares on the
-six pose parameters (``scipy.optimize.least_squares``), re-assigning until the assignment is
+six pose parameters (Levenberg-Marquardt with the analytic Jacobian), re-assigning until the assignment is
 stable: at convergence this is the maximum-likelihood pose, which reaches the Cramer-Rao bound.
 The nearest-corner cost has a degenerate zero: the holder receding to infinity, every model
 corner projecting onto one detected corner. The assignment is therefore one-to-one
@@ -62,7 +62,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-from scipy.optimize import least_squares, linear_sum_assignment
+from scipy.optimize import linear_sum_assignment
 from scipy.spatial.distance import cdist
 from scipy.spatial.transform import Rotation
 
@@ -390,6 +390,56 @@ def _project_ideal(R, t, P, K):
     return (X @ K.T)[:, :2] / X[:, 2:3], X[:, 2]
 
 
+def _lm_pose(R, t, P, K, target, max_iter: int = 100):
+    """Levenberg-Marquardt on the pixel reprojection error with fixed pairs.
+
+    Residuals ``r = pi(R P + t) - target`` (ideal px); the rotation is updated on the left,
+    ``R <- exp([w]x) R``, and re-linearised at every step, so the analytic Jacobian is exact:
+    ``d pi / d X = (K_{0:2} - pi e3^T) / Z``, ``dX / dw = -[R P]x``, ``dX / dt = I``.
+    Returns ``(R, t, rms_px)`` with the RMS per point.
+    """
+    n = len(P)
+
+    def resid(R, t):
+        X = P @ R.T + t
+        q = X @ K.T
+        uv = q[:, :2] / q[:, 2:3]
+        return X, uv, (uv - target).ravel()
+
+    X, uv, r = resid(R, t)
+    cost = r @ r
+    lam = 1e-3
+    for _ in range(max_iter):
+        Z = X[:, 2]
+        # d uv / d X, (n, 2, 3)
+        A = (K[None, :2, :] - uv[:, :, None] * np.array([0.0, 0.0, 1.0])) / Z[:, None, None]
+        RP = X - t
+        skew = np.zeros((n, 3, 3))
+        skew[:, 0, 1], skew[:, 0, 2], skew[:, 1, 2] = RP[:, 2], -RP[:, 1], RP[:, 0]
+        skew[:, 1, 0], skew[:, 2, 0], skew[:, 2, 1] = -RP[:, 2], RP[:, 1], -RP[:, 0]
+        # skew @ w = w x RP = -[RP]x w: the change of X under R <- exp([w]x) R
+        J = np.concatenate([A @ skew, A], axis=2).reshape(2 * n, 6)
+        g = J.T @ r
+        H = J.T @ J
+        while True:
+            delta = -np.linalg.solve(H + lam * np.diag(np.diag(H)), g)
+            R_new = Rotation.from_rotvec(delta[:3]).as_matrix() @ R
+            t_new = t + delta[3:]
+            X_new, uv_new, r_new = resid(R_new, t_new)
+            c_new = r_new @ r_new
+            if c_new <= cost or lam > 1e12:
+                break
+            lam *= 10.0
+        if c_new > cost:
+            break
+        done = cost - c_new <= 1e-15 * max(cost, 1e-30) or np.abs(delta).max() < 1e-13
+        R, t, X, uv, r, cost = R_new, t_new, X_new, uv_new, r_new, c_new
+        lam = max(lam / 10.0, 1e-9)
+        if done:
+            break
+    return R, t, float(np.sqrt(cost / n))
+
+
 def refine_continuous(est: PoseEstimate, ideal_px: np.ndarray, camera: Camera, holder: Holder,
                       motion_range: MotionRange, max_rounds: int = 10,
                       slack: float = 0.1) -> PoseEstimate:
@@ -412,17 +462,7 @@ def refine_continuous(est: PoseEstimate, ideal_px: np.ndarray, camera: Camera, h
             break
         assign = col
 
-        def residuals(p, R0=R, target=target):
-            Rp = Rotation.from_rotvec(p[:3]).as_matrix() @ R0
-            X = P @ Rp.T + p[3:]
-            return ((X @ K.T)[:, :2] / X[:, 2:3] - target).ravel()
-
-        res = least_squares(residuals, np.concatenate([np.zeros(3), t]), method="lm",
-                            x_scale=np.r_[1e-3, 1e-3, 1e-3, 1.0, 1.0, 1.0],
-                            xtol=1e-12, ftol=1e-12, gtol=1e-12)
-        R = Rotation.from_rotvec(res.x[:3]).as_matrix() @ R
-        t = res.x[3:]
-        rms = float(np.sqrt(np.mean(res.fun ** 2 * 2)))  # per-point RMS (2 coordinates)
+        R, t, rms = _lm_pose(R, t, P, K, target)
     info = dict(est.info, dm_plus_rounds=rounds, assignment=None if assign is None
                 else assign.tolist())
     dof = pose_dof(R, t)
