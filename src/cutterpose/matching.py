@@ -35,9 +35,10 @@ templates, 14.6 MB); finer levels are projected on the fly. The paper's full lib
 
 **dm+** (ours). DM's answer is capped by the grid (0.1 mm / 0.1 deg) and by the integer-pixel
 distance image. ``dm+`` continues from it with the exact distance of every projected model corner
-to a detected corner (ideal pixels, ``cKDTree`` / Hungarian assignment) and least squares on the
-six pose parameters (Levenberg-Marquardt with the analytic Jacobian), re-assigning until the assignment is
-stable: at convergence this is the maximum-likelihood pose, which reaches the Cramer-Rao bound.
+to a detected corner (ideal pixels, one-to-one: Hungarian assignment on the 20 x 20 distances)
+and least squares on the six pose parameters (Levenberg-Marquardt, analytic Jacobian),
+re-assigning until the assignment is stable: at convergence this is the maximum-likelihood
+pose, which reaches the Cramer-Rao bound.
 The nearest-corner cost has a degenerate zero: the holder receding to infinity, every model
 corner projecting onto one detected corner. The assignment is therefore one-to-one
 (``scipy.optimize.linear_sum_assignment``), which excludes it, and the result must stay within
