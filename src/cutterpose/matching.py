@@ -24,9 +24,11 @@ reaches the ML accuracy from 2.5 px on.
 **Search.** Coarse to fine with steps 5, 1, 0.5, 0.2, 0.1 (mm and deg) over all six DOFs, within
 the known motion range (:class:`~cutterpose.vanishing.MotionRange`). At each level the ``3^6``
 neighbours of the current pose are scored and the best taken until the centre is best (a local
-search; ties keep the centre). The coarse level starts from each of the top initial candidates
-and first scans a wider ``(2 r + 1)^6`` window (``coarse_radius`` r = 2: +-10 mm / +-10 deg), since
-the paper's ``3^6`` neighbourhood cannot recover from initial errors beyond one step.
+search; ties keep the centre), so the coarse level can walk several steps from the start.
+Options: ``n_starts`` > 1 searches from the top initial candidates, ``coarse_radius`` = 2 first
+scans a ``5^6`` window (+-10 mm / +-10 deg). With the sphere-based initial pose neither is needed
+(11 000 trials: dm recovered from initial errors up to 9.8 deg / 46 mm; docs/notes/dm.md), so
+the defaults are the paper's (1 start, ``3^6``).
 Templates of the coarse level can be built offline over the whole motion range
 (:class:`TemplateLibrary`, feasible for the real +-10 deg / +-20 mm range: 5^3 9^3 = 91 125
 templates, 14.6 MB); finer levels are projected on the fly. The paper's full library at
