@@ -115,3 +115,5 @@ def test_bad_input_raises_typed_errors(fn):
         fn(line, CAM, HOLDER)
     with pytest.raises(InputError, match="shape"):
         fn(px.ravel(), CAM, HOLDER)
+    with pytest.raises(InputError, match="Holder"):
+        fn(px, CAM, HOLDER.points_holder_mm)

@@ -132,10 +132,13 @@ def check_contour(points_px, holder: Holder) -> np.ndarray:
     Raises
     ------
     InputError
-        Not an ``(n, 2)`` array of finite numbers.
+        Not an ``(n, 2)`` array of finite numbers, or ``holder`` not a :class:`Holder`.
     DegenerateInputError
         Not exactly the holder's number of corners, or all corners (nearly) collinear.
     """
+    if not isinstance(holder, Holder):
+        raise InputError("the correspondence-free methods need a Holder (its contour), got "
+                         f"{type(holder).__name__}")
     try:
         x = np.asarray(points_px, dtype=float)
     except (TypeError, ValueError):
