@@ -150,3 +150,21 @@ def test_bad_input_raises_typed_errors(fn):
     line = np.column_stack([np.linspace(100, 900, 20), np.full(20, 300.0)])
     with pytest.raises(DegenerateInputError, match="collinear"):
         fn(line, CAM, HOLDER)
+
+
+def test_dm_and_dm_plus_through_lens_distortion():
+    # the distance image is in observed pixels, templates go through the division model; dm+
+    # works on ideal pixels
+    cam = default_camera("table1")
+    rng = np.random.default_rng(5)
+    pose = Pose.from_euler(4, -6, 3, 8, -5, 610)
+    px = cam.project(pose.apply(HOLDER.points_holder_mm)) + rng.normal(0, 0.3, (20, 2))
+    px = np.roll(px, 4, axis=0)[::-1]
+    init = initial_pose(px, cam, HOLDER, motion_range=MotionRange.real())
+    dm = distance_match(px, cam, HOLDER, init, motion_range=MotionRange.real())
+    dmp = distance_match(px, cam, HOLDER, init, motion_range=MotionRange.real(), refine=True)
+    assert geodesic_deg(pose.R, dm.R_cam_holder) < 0.3
+    assert np.abs(dm.t_cam_holder_mm - pose.t_mm).max() < 1.0
+    assert geodesic_deg(pose.R, dmp.R_cam_holder) < 0.1
+    assert np.abs(dmp.t_cam_holder_mm - pose.t_mm).max() < 0.4   # 0.9 mm if distortion ignored
+    assert dmp.residual_px < 0.4
