@@ -87,20 +87,11 @@ def list_methods():
 @app.command("demo")
 @friendly
 def demo(out: str = typer.Option("results/demo", help="Output folder.")):
-    """The main job on the bundled default data: measure the example image and print the pose
-    (before the image pipeline exists: a short synthetic experiment)."""
-    try:
-        from .pipeline import demo as pipeline_demo
-    except ImportError:
-        pipeline_demo = None
-    if pipeline_demo is not None:
-        pipeline_demo(out)
-        return
-    from .experiments.synthetic import run_synthetic
+    """The main job on the bundled default data: render the seeded example image through the
+    Table 1 camera, measure it with dm+, print the pose and write the overlay."""
+    from .pipeline import demo as pipeline_demo
 
-    res = run_synthetic(["opencv-ippe-lm", "opencv-sqpnp"], [0.5, 1.0, 2.0], 100, out,
-                        show_progress=True)
-    typer.echo((res.out_dir / "summary.md").read_text())
+    pipeline_demo(out)
 
 
 # ---- section: measure, render, render-set, experiment images (issue 5) --------------------
