@@ -161,6 +161,8 @@ def align_rigid(P: np.ndarray, X: np.ndarray) -> Candidate:
 def align_rigid_many(P: np.ndarray, Xs: np.ndarray) -> list[Candidate]:
     """:func:`align_rigid` of ``P`` to each of ``Xs`` (k, n, 3) in one batched pass (the
     per-call numpy overhead dominates at these sizes)."""
+    if len(Xs) == 1:  # the common case: a dozen fewer numpy calls than the batched path
+        return [_align_one(P, Xs[0])]
     # sum / n is what mean computes, without its Python-level overhead
     Pc = P.sum(axis=0) / len(P)
     Xc = Xs.sum(axis=1) / Xs.shape[1]
@@ -177,6 +179,23 @@ def align_rigid_many(P: np.ndarray, Xs: np.ndarray) -> list[Candidate]:
         R[flip] -= 2.0 * U[flip, :, 2:] * Vt[flip, 2:, :]
     t = Xc - R @ Pc
     return list(zip(R, t))
+
+
+def _align_one(P: np.ndarray, X: np.ndarray) -> Candidate:
+    """:func:`align_rigid` of one set, with the model's centred points cached."""
+    mc = model_cache(P)
+    cent = mc.get("centred")
+    if cent is None:
+        Pc = P.sum(axis=0) / len(P)
+        cent = mc["centred"] = (Pc, P - Pc)
+    Pc, Pcent = cent
+    Xc = X.sum(axis=0) / len(X)
+    U, _, Vt = svd_small((X - Xc).T @ Pcent)
+    R = U @ Vt
+    (a, b, c), (d, e, f), (g, h, i) = R.tolist()
+    if a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g) < 0:  # S = diag(1,1,-1)
+        R -= 2.0 * np.outer(U[:, 2], Vt[2])
+    return R, Xc - R @ Pc
 
 
 # B_i^T B_i = [[1, 0, -u], [0, 1, -v], [-u, -v, u^2 + v^2]] of a point's two projection rows
