@@ -4,8 +4,14 @@ import cv2
 import numpy as np
 import pytest
 
-from cutterpose.camera import (DivisionCamera, OpenCVCamera, PinholeCamera, camera_from_dict,
-                               load_camera, save_camera)
+from cutterpose.camera import (
+    DivisionCamera,
+    OpenCVCamera,
+    PinholeCamera,
+    camera_from_dict,
+    load_camera,
+    save_camera,
+)
 from cutterpose.errors import CameraFileError
 
 

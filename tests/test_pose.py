@@ -4,8 +4,15 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from cutterpose.errors import InputError
-from cutterpose.pose import (Pose, euler_deg_from_rotation, geodesic_deg, nearest_rotation,
-                             pose_errors, rotation_from_euler_deg, wrap_deg)
+from cutterpose.pose import (
+    Pose,
+    euler_deg_from_rotation,
+    geodesic_deg,
+    nearest_rotation,
+    pose_errors,
+    rotation_from_euler_deg,
+    wrap_deg,
+)
 
 
 def _rx(a):

@@ -2,9 +2,15 @@ import numpy as np
 import pytest
 
 from cutterpose.experiments.report import TRIAL_COLUMNS, read_trials_csv
-from cutterpose.experiments.synthetic import (crlb_std, generate_trials, load_trials_file,
-                                              parse_sigmas, pixel_jacobian, run_synthetic,
-                                              run_trials)
+from cutterpose.experiments.synthetic import (
+    crlb_std,
+    generate_trials,
+    load_trials_file,
+    parse_sigmas,
+    pixel_jacobian,
+    run_synthetic,
+    run_trials,
+)
 from cutterpose.methods import get_method
 from cutterpose.pose import euler_deg_from_rotation, rotation_from_euler_deg
 
