@@ -31,6 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from .errors import CameraFileError, InputError
+from .jsonfile import read_json
 
 __all__ = [
     "Camera", "PinholeCamera", "DivisionCamera", "OpenCVCamera",
@@ -545,11 +546,7 @@ def load_camera(path) -> Camera:
         return camera_formats.read_ros(path)
     if suffix in (".yml", ".yaml", ".xml"):
         return _read_opencv_yaml(path)
-    try:
-        d = json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise CameraFileError(f"{path}: not valid JSON ({e})") from None
-    return camera_from_dict(d, where=str(path))
+    return camera_from_dict(read_json(path, CameraFileError, "camera file"), where=str(path))
 
 
 def save_camera(cam: Camera, path) -> None:

@@ -14,11 +14,11 @@ import json
 import math
 from dataclasses import dataclass, field
 from importlib import resources
-from pathlib import Path
 
 import numpy as np
 
 from .errors import HolderModelError
+from .jsonfile import read_json
 
 __all__ = ["Holder", "load_holder", "default_holder", "holder_from_dict"]
 
@@ -208,14 +208,7 @@ def holder_from_dict(d: dict, where: str = "holder") -> Holder:
 
 def load_holder(path) -> Holder:
     """Read and validate a holder JSON file."""
-    path = Path(path)
-    if not path.is_file():
-        raise HolderModelError(f"{path}: holder file not found")
-    try:
-        d = json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise HolderModelError(f"{path}: not valid JSON ({e})") from None
-    return holder_from_dict(d, where=str(path))
+    return holder_from_dict(read_json(path, HolderModelError, "holder file"), where=str(path))
 
 
 def default_holder() -> Holder:

@@ -33,6 +33,7 @@ import numpy as np
 
 from .camera import Camera
 from .errors import InputError, ModelFileError
+from .jsonfile import read_json
 from .pose import Pose
 
 __all__ = ["CirclePlate", "load_plate", "save_plate", "render_plate", "sample_plate_poses",
@@ -195,14 +196,7 @@ class CirclePlate:
 
 def load_plate(path) -> CirclePlate:
     """Read ``plate.json`` (as written by :func:`save_plate`)."""
-    path = Path(path)
-    if not path.is_file():
-        raise ModelFileError(f"{path}: plate file not found")
-    try:
-        d = json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise ModelFileError(f"{path}: not valid JSON ({e})") from None
-    return CirclePlate.from_dict(d, where=str(path))
+    return CirclePlate.from_dict(read_json(path, ModelFileError, "plate file"), where=str(path))
 
 
 def save_plate(plate: CirclePlate, path) -> None:

@@ -503,19 +503,11 @@ class _Scene:
             wi = i[wall]
             if wi.size:
                 e = edge[wall]
-                f = frac[wall]
-                sw = s0[wi] + f * (s1[wall] - s0[wi])
-                Xw = X0[wi] + f * (X1[wall] - X0[wi])
-                Yw = Y0[wi] + f * (Y1[wall] - Y0[wi])
-                nrm = self.inward[e].astype(np.float32)
-                cos_w = -(nrm[:, 0] * dx[wi] + nrm[:, 1] * dy[wi]) / norm_d[wi]
-                along = self.arc0[e].astype(np.float32) + np.hypot(
-                    Xw - self.edges[e, 0, 0], Yw - self.edges[e, 0, 1])
-                depth = f * D
-                alb = np.float32(s.wall_albedo) * self.wall_tex(along, depth)
                 label[wi] = WALL + e.astype(np.uint8)
-                value[wi] = shade_points(cos_w, sw * norm_d[wi], alb, np.float32(0.5),
-                                         falloff[wi], s)
+                value[wi] = self._shade_wall(
+                    wi, e, frac[wall], s1[wall], D, (X0, Y0, s0, X1[wall], Y1[wall]),
+                    (dx, dy, norm_d, falloff), self.edges, self.inward, self.arc0,
+                    s.wall_albedo)
         # outside the holder: its outer side walls, else the cutterhead
         i = np.flatnonzero(ok & ~in_rect)
         if i.size:
@@ -540,19 +532,28 @@ class _Scene:
             wi = i[wall]
             if wi.size:
                 e = edge[wall]
-                f = frac[wall]
-                sw = s0[wi] + f * (s1[wall] - s0[wi])
-                Xw = X0[wi] + f * (X1[wall] - X0[wi])
-                Yw = Y0[wi] + f * (Y1[wall] - Y0[wi])
-                nrm = self.rect_outward[e].astype(np.float32)
-                cos_w = -(nrm[:, 0] * dx[wi] + nrm[:, 1] * dy[wi]) / norm_d[wi]
-                along = self.rect_arc0[e].astype(np.float32) + np.hypot(
-                    Xw - self.rect_edges[e, 0, 0], Yw - self.rect_edges[e, 0, 1])
-                alb = np.float32(s.outer_wall_albedo) * self.wall_tex(along, f * C)
                 label[wi] = OUTER_WALL
-                value[wi] = shade_points(cos_w, sw * norm_d[wi], alb, np.float32(0.5),
-                                         falloff[wi], s)
+                value[wi] = self._shade_wall(
+                    wi, e, frac[wall], s1[wall], C, (X0, Y0, s0, X1[wall], Y1[wall]),
+                    (dx, dy, norm_d, falloff), self.rect_edges, self.rect_outward,
+                    self.rect_arc0, s.outer_wall_albedo)
         return label, value
+
+    def _shade_wall(self, wi, e, f, s1, depth_mm, seg, ray, edges, normals, arc0, albedo):
+        """Grey levels of rays ``wi`` that hit wall ``e`` at fraction ``f`` of their segment
+        from the top plane (``X0, Y0`` at ray length ``s0``) to the plane ``depth_mm`` deep
+        (``X1, Y1`` at ``s1``); the wall's normal ``normals[e]`` faces the camera side, and its
+        texture runs along the outline (arc length from ``arc0``) and down the wall."""
+        X0, Y0, s0, X1, Y1 = seg
+        dx, dy, norm_d, falloff = ray
+        sw = s0[wi] + f * (s1 - s0[wi])
+        Xw = X0[wi] + f * (X1 - X0[wi])
+        Yw = Y0[wi] + f * (Y1 - Y0[wi])
+        nrm = normals[e].astype(np.float32)
+        cos_w = -(nrm[:, 0] * dx[wi] + nrm[:, 1] * dy[wi]) / norm_d[wi]
+        along = arc0[e].astype(np.float32) + np.hypot(Xw - edges[e, 0, 0], Yw - edges[e, 0, 1])
+        alb = np.float32(albedo) * self.wall_tex(along, f * np.float32(depth_mm))
+        return shade_points(cos_w, sw * norm_d[wi], alb, np.float32(0.5), falloff[wi], self.s)
 
 
 def _inside_axis_polygon(X, Y, edges) -> np.ndarray:
