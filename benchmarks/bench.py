@@ -32,7 +32,7 @@ METHODS = ["opencv-sqpnp", "opencv-ippe-lm", "dlt", "epnp", "rpnp", "aspnp", "op
            "opnp+lm", "initial", "dm", "dm+"]
 
 
-def _median_us(fn, inputs, repeat=5):
+def _median_us(fn, inputs, repeat=15):
     """Median over inputs of the fastest of ``repeat`` calls per input, in microseconds.
 
     The minimum per input filters out the other jobs of a shared machine; the median over
@@ -62,7 +62,7 @@ def bench_solvers(n_trials: int) -> None:
         lambda x: cv2.solvePnP(P, x.reshape(-1, 1, 2), cam.K, None, flags=cv2.SOLVEPNP_SQPNP),
         tr.points_px)
     print(f"reference: cv2.solvePnP(SOLVEPNP_SQPNP) called directly, 20 points: median "
-          f"{ref_us:.1f} us (fastest of 5 calls per input, median over {n_trials} inputs)\n")
+          f"{ref_us:.1f} us (fastest of 15 calls per input, median over {n_trials} inputs)\n")
     print(f"{'method':16s} {'median us':>11s} {'x SQPnP':>9s} {'target us':>10s}  verdict")
     for name in METHODS:
         try:
@@ -79,7 +79,7 @@ def bench_solvers(n_trials: int) -> None:
             return m.solve(x, cam, holder)
 
         fn(pts[0])  # warm-up: imports, caches, stored templates
-        us = _median_us(fn, pts, repeat=5 if us_hint(name) else 2)
+        us = _median_us(fn, pts, repeat=15 if us_hint(name) else 2)
         tgt = TARGETS_US.get(name)
         verdict = "" if tgt is None else ("ok" if us < tgt else "SLOWER THAN TARGET")
         print(f"{name:16s} {us:11.1f} {us / ref_us:9.1f} {tgt if tgt else '':>10} {verdict:>4s}")

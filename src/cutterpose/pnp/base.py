@@ -253,6 +253,15 @@ def reprojection_rms(R, t, P, m) -> float:
     return float(np.sqrt(np.mean(np.sum((proj - m) ** 2, axis=1))))
 
 
+def _dets(Rs: np.ndarray) -> np.ndarray:
+    """Determinants of (k, 3, 3) matrices; one candidate (the usual case) on Python floats,
+    where np.linalg.det's per-call overhead would dominate."""
+    if len(Rs) != 1:
+        return np.linalg.det(Rs)
+    (a, b, c), (d, e, f), (g, h, i) = Rs[0].tolist()
+    return np.array([a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g)])
+
+
 def select(method: str, cands: list[Candidate], P, m, f_px: float) -> PoseEstimate:
     """Pick the candidate with the least reprojection error; see the module docstring."""
     n_raw = len(cands)
@@ -270,7 +279,7 @@ def select(method: str, cands: list[Candidate], P, m, f_px: float) -> PoseEstima
             finite = np.isfinite(Rs).all(axis=(1, 2)) & np.isfinite(ts).all(axis=1)
             Rs, ts = Rs[finite], ts[finite]
             X = P @ Rs.transpose(0, 2, 1) + ts[:, None, :]
-        ok = (np.abs(np.linalg.det(Rs) - 1.0) <= 1e-6) & (X[..., 2].min(axis=1) > 0)
+        ok = (np.abs(_dets(Rs) - 1.0) <= 1e-6) & (X[..., 2].min(axis=1) > 0)
         if not ok.all():
             Rs, ts, X = Rs[ok], ts[ok], X[ok]
     if not cands or len(Rs) == 0:

@@ -65,6 +65,8 @@ __all__ = ["candidates", "solve"]
 _DER7 = np.arange(7.0, 0.0, -1.0)
 _POW6 = np.arange(6.0, -1.0, -1.0)
 _SUB7 = (np.arange(1, 7), np.arange(6))
+_COMPANION7 = np.zeros((7, 7))
+_COMPANION7[_SUB7] = 1.0  # the sub-diagonal of a degree-7 companion matrix
 
 
 def _frame_rows(x) -> list[list[float]]:
@@ -119,29 +121,33 @@ def _pair_model(P: np.ndarray, i1: int, i2: int):
             Pa = (P - p0) @ R_o
         else:
             Pa = None
-        pm = cache[(i1, i2)] = (rest, D12_2, D1i_2, D2i_2, Pa)
+        # the distance terms of the quartics (A1, A6 of the notes) are model-only too
+        A1 = D1i_2 / D12_2
+        A6 = (D2i_2 - D12_2 - D1i_2) / (2.0 * D12_2)
+        pm = cache[(i1, i2)] = (rest, D12_2, D1i_2, D2i_2, Pa, A1, A6, A6 * A6)
     return pm
 
 
 def _cost_derivative(b: np.ndarray, P: np.ndarray, i1: int, i2: int) -> np.ndarray:
     """Coefficients (t^7 .. t^0) of ``G(t) = sum_i f_i(t) f_i'(t)`` (paper eq. 8)."""
-    rest, D12_2, D1i_2, D2i_2, _ = _pair_model(P, i1, i2)
+    rest, _, _, _, _, A1, A6, A6_2 = _pair_model(P, i1, i2)
     c12 = float(b[i1] @ b[i2])
     c1i, c2i = (b[[i1, i2]] @ b[rest].T)  # one product for both cosines
     s12_2 = 1.0 - c12 * c12
-    s1i_2 = 1.0 - c1i * c1i
-    A1 = D1i_2 / D12_2
-    A2 = A1 * s12_2 - s1i_2
+    c1i_2 = c1i * c1i
+    c2i_2 = c2i * c2i
+    A2 = A1 * s12_2 - (1.0 - c1i_2)
     A3 = c1i * c2i - c12
     A4 = c12 * c2i - c1i
-    A6 = (D2i_2 - D12_2 - D1i_2) / (2.0 * D12_2)
-    A7 = 1.0 - c12 * c12 - c1i * c1i + c12 * c1i * c2i + A6 * s12_2
+    A7 = s12_2 - c1i_2 + c12 * c1i * c2i + A6 * s12_2
+    A1A4 = A1 * A4
+    A2A4 = A2 * A4
     g = np.empty((5, len(c1i)))
-    g[0] = A6 * A6 - A1 * c2i * c2i
-    g[1] = 2.0 * (A3 * A6 - A1 * A4 * c2i)
-    g[2] = A3 * A3 + 2.0 * A6 * A7 - A1 * A4 * A4 - A2 * c2i * c2i
-    g[3] = 2.0 * (A3 * A7 - A2 * A4 * c2i)
-    g[4] = A7 * A7 - A2 * A4 * A4
+    g[0] = A6_2 - A1 * c2i_2
+    g[1] = 2.0 * (A3 * A6 - A1A4 * c2i)
+    g[2] = A3 * A3 + 2.0 * A6 * A7 - A1A4 * A4 - A2 * c2i_2
+    g[3] = 2.0 * (A3 * A7 - A2A4 * c2i)
+    g[4] = A7 * A7 - A2A4 * A4
     # sum_i f_i f_i' from the 5x5 Gram matrix of the quartics' coefficients
     return _fdf_map() @ (g @ g.T).ravel()
 
@@ -178,8 +184,7 @@ def _minima(G: np.ndarray) -> np.ndarray:
     if G[0] != 0.0 and G[-1] != 0.0:
         # np.roots without its overhead: eigenvalues of the companion matrix by dgeev (the
         # routine behind np.linalg.eigvals), kept as real and imaginary parts
-        A = np.zeros((7, 7))
-        A[_SUB7] = 1.0
+        A = _COMPANION7.copy()
         A[0] = -G[1:] / G[0]
         wr, wi, _, _, info = _dgeev(A, compute_vl=0, compute_vr=0)
         if info != 0:
@@ -196,11 +201,74 @@ def _minima(G: np.ndarray) -> np.ndarray:
     return t[dG > 0]
 
 
+def _inv_sym3(A: np.ndarray) -> np.ndarray:
+    """Inverse of a symmetric positive definite 3x3 matrix by cofactors (np.linalg.inv's
+    per-call overhead is most of its cost at this size)."""
+    (a, b, c), (_, d, e), (_, _, f) = A.tolist()
+    c00, c01, c02 = d * f - e * e, c * e - b * f, b * e - c * d
+    c11, c12, c22 = a * f - c * c, b * c - a * e, a * d - b * b
+    det = a * c00 + b * c01 + c * c02
+    return np.array([[c00, c01, c02], [c01, c11, c12], [c02, c12, c22]]) / det
+
+
+def _recover_one(t: float, b: np.ndarray, m: np.ndarray, Pa: np.ndarray, i1: int,
+                 i2: int) -> np.ndarray | None:
+    """Camera-frame points for one root ``t`` (step 6 of the notes), as in :func:`candidates`'
+    batched path: ``X_i = R_x Rot_x(theta) Pa_i + T`` with ``(cos, sin, T)`` from the linear
+    least squares of ``u X3 - X1 = 0``, ``v X3 - X2 = 0``, ``theta`` from the direction of
+    ``(cos, sin)``, ``T`` re-solved for that exact rotation, then each point moved onto its ray
+    keeping its range. Returns (n, 3), or None for a degenerate axis."""
+    c12 = float(b[i1] @ b[i2])
+    ax = ((c12 + t) * b[i2] - b[i1]).tolist()
+    nrm = math.sqrt(ax[0] * ax[0] + ax[1] * ax[1] + ax[2] * ax[2])
+    if nrm == 0.0:
+        return None
+    (a1, a2, a3), (b1, b2, b3), (d1, d2, d3) = _frame_rows([ax[0] / nrm, ax[1] / nrm,
+                                                             ax[2] / nrm])
+    # columns r1 = (a1, b1, d1), r2 = (a2, b2, d2), r3 = (a3, b3, d3) of R_x
+    u, v = m[:, 0], m[:, 1]
+    px, py, pz = Pa[:, 0], Pa[:, 1], Pa[:, 2]
+    # x rows: (u r_z - r_x) . term, y rows: (v r_z - r_y) . term, for the three terms
+    e1x, e2x, e3x = u * d1 - a1, u * d2 - a2, u * d3 - a3
+    e1y, e2y, e3y = v * d1 - b1, v * d2 - b2, v * d3 - b3
+    n = len(m)
+    M = np.empty((2 * n, 5))
+    M[:n, 0] = e2x * py + e3x * pz
+    M[n:, 0] = e2y * py + e3y * pz
+    M[:n, 1] = e3x * py - e2x * pz
+    M[n:, 1] = e3y * py - e2y * pz
+    M[:n, 2:] = (-1.0, 0.0, 0.0)
+    M[n:, 2:] = (0.0, -1.0, 0.0)
+    M[:n, 4] = u
+    M[n:, 4] = v
+    r = np.concatenate([-e1x * px, -e1y * px])
+    N = M.T @ M
+    g = M.T @ r
+    # (c, s) through the Schur complement of the T block (what the batched path's projection
+    # computes); only its direction is used
+    NT_inv = _inv_sym3(N[2:, 2:])
+    S = N[:2, :2] - N[:2, 2:] @ NT_inv @ N[2:, :2]
+    h = g[:2] - N[:2, 2:] @ (NT_inv @ g[2:])
+    c_ = S[1, 1] * h[0] - S[0, 1] * h[1]
+    s_ = S[0, 0] * h[1] - S[0, 1] * h[0]
+    th = math.atan2(s_, c_)
+    c, sn = math.cos(th), math.sin(th)
+    T = NT_inv @ (g[2:] - N[2:, :2] @ (c, sn))
+    R_t = np.array([[a1, c * a2 + sn * a3, c * a3 - sn * a2],
+                    [b1, c * b2 + sn * b3, c * b3 - sn * b2],
+                    [d1, c * d2 + sn * d3, c * d3 - sn * d2]])
+    Xt = Pa @ R_t.T + T
+    rng = np.sqrt(np.einsum("ij,ij->i", Xt, Xt)) * np.sign(Xt[:, 2])
+    return b * rng[:, None]
+
+
 def candidates(P: np.ndarray, m: np.ndarray) -> list[Candidate]:
     """RPnP poses, one per local minimum of the triplet cost; see the module docstring."""
     n = len(P)
-    bh = np.column_stack([m, np.ones(n)])
-    b = bh / np.linalg.norm(bh, axis=1, keepdims=True)
+    b = np.empty((n, 3))
+    b[:, :2] = m
+    b[:, 2] = 1.0
+    b /= np.sqrt(np.einsum("ij,ij->i", b, b))[:, None]
     # longest projection: least cosine between two rays, exhaustively
     cosines = b @ b.T
     i1, i2 = divmod(int(np.argmin(cosines)), n)
@@ -215,6 +283,9 @@ def candidates(P: np.ndarray, m: np.ndarray) -> list[Candidate]:
     ts = _minima(_cost_derivative(b, P, i1, i2))
     if ts.size == 0:
         return []
+    if ts.size == 1:  # the usual case: the same least squares with a third of the numpy calls
+        X = _recover_one(float(ts[0]), b, m, Pa, i1, i2)
+        return [] if X is None else align_rigid_many(P, X[None])
     # the rotation axis in the camera frame, one per minimum
     c12 = b[i1] @ b[i2]
     axes = (c12 + ts)[:, None] * b[i2] - b[i1]
