@@ -200,14 +200,8 @@ def measure_cmd(
     if as_json:
         typer.echo(_json.dumps(m.to_dict()))
     elif m.pose is not None:
-        a, b, g, x, y, z = m.pose.dof
-        s = m.std_dof
-        typer.echo(f"alpha {a:.3f} +- {s[0]:.3f} deg  beta {b:.3f} +- {s[1]:.3f} deg  "
-                   f"gamma {g:.3f} +- {s[2]:.3f} deg")
-        typer.echo(f"X {x:.2f} +- {s[3]:.2f} mm  Y {y:.2f} +- {s[4]:.2f} mm  "
-                   f"Z {z:.2f} +- {s[5]:.2f} mm")
-        typer.echo(f"RMS residual {m.quality.rms_px:.3f} px; "
-                   + ", ".join(f"{k} {v:.0f} ms" for k, v in m.timings_ms.items()))
+        typer.echo("\n".join(m.pose_lines()))
+        typer.echo("time: " + ", ".join(f"{k} {v:.0f} ms" for k, v in m.timings_ms.items()))
     if not m.ok:
         fail(f"pose refused: {m.quality.reason}", code=3)
 

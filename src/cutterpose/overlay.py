@@ -95,14 +95,7 @@ def _lines(m) -> list[str]:
         while r:
             lines.append("  " + r[:90])
             r = r[90:]
-    if m.pose is not None:
-        a, b, g, x, y, z = m.pose.dof
-        s = m.std_dof
-        lines.append(f"alpha {a:7.3f}  beta {b:7.3f}  gamma {g:7.3f} deg   "
-                     f"(std {s[0]:.3f} {s[1]:.3f} {s[2]:.3f})")
-        lines.append(f"X {x:8.2f}  Y {y:8.2f}  Z {z:8.2f} mm   "
-                     f"(std {s[3]:.3f} {s[4]:.3f} {s[5]:.3f})")
-        lines.append(f"RMS residual {q.rms_px:.3f} px")
+    lines += m.pose_lines()
     return lines[:8]
 
 

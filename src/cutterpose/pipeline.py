@@ -119,6 +119,17 @@ class Measurement:
     def ok(self) -> bool:
         return self.quality.ok
 
+    def pose_lines(self) -> list[str]:
+        """The pose with its std and the residual as three short lines (CLI and overlay)."""
+        if self.pose is None:
+            return []
+        a, b, g, x, y, z = self.pose.dof
+        s = self.std_dof
+        return [f"alpha {a:7.3f}  beta {b:7.3f}  gamma {g:7.3f} deg   "
+                f"(std {s[0]:.3f} {s[1]:.3f} {s[2]:.3f})",
+                f"X {x:8.2f}  Y {y:8.2f}  Z {z:8.2f} mm   (std {s[3]:.3f} {s[4]:.3f} {s[5]:.3f})",
+                f"RMS residual {self.quality.rms_px:.3f} px"]
+
     def to_dict(self) -> dict:
         """The JSON object of ``cutterpose measure --json``."""
         d = {"method": self.method, "quality": self.quality.to_dict(),

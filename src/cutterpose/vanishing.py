@@ -63,6 +63,7 @@ from .camera import Camera
 from .errors import DegenerateInputError, InputError
 from .estimate import PoseEstimate
 from .holder import Holder
+from .pnp.base import as_points_px
 from .pose import euler_deg_from_rotation, nearest_rotation, wrap_deg
 
 __all__ = ["MotionRange", "PoseOutOfRangeError", "check_contour", "initial_pose",
@@ -139,15 +140,7 @@ def check_contour(points_px, holder: Holder) -> np.ndarray:
     if not isinstance(holder, Holder):
         raise InputError("the correspondence-free methods need a Holder (its contour), got "
                          f"{type(holder).__name__}")
-    try:
-        x = np.asarray(points_px, dtype=float)
-    except (TypeError, ValueError):
-        raise InputError("points_px must be an (n, 2) array of numbers") from None
-    if x.ndim != 2 or x.shape[1] != 2:
-        raise InputError(f"points_px must have shape (n, 2), got {x.shape}")
-    if not np.all(np.isfinite(x)):
-        raise InputError(f"points_px holds NaN or inf (at corner "
-                         f"{np.argwhere(~np.isfinite(x))[0, 0]})")
+    x = as_points_px(points_px)
     if len(x) != holder.n_corners:
         raise DegenerateInputError(
             f"need the {holder.n_corners} corners of the holder's inner contour (in contour "

@@ -72,6 +72,20 @@ _MODEL_CACHE: dict = {}
 _MODEL_CACHE_SIZE = 64
 
 
+def as_points_px(points_px) -> np.ndarray:
+    """``points_px`` as an (n, 2) float array of finite numbers, else :class:`InputError`."""
+    try:
+        x = np.asarray(points_px, dtype=float)
+    except (TypeError, ValueError):
+        raise InputError("points_px must be an (n, 2) array of numbers") from None
+    if x.ndim != 2 or x.shape[1] != 2:
+        raise InputError(f"points_px must have shape (n, 2), got {x.shape}")
+    if not np.isfinite(x).all():
+        raise InputError(f"points_px holds NaN or inf (at point "
+                         f"{np.argwhere(~np.isfinite(x))[0, 0]})")
+    return x
+
+
 def check_correspondences(points_px, points_obj, min_points: int) -> tuple[np.ndarray, np.ndarray]:
     """Validate image/object correspondences; return them as float arrays.
 
@@ -82,18 +96,11 @@ def check_correspondences(points_px, points_obj, min_points: int) -> tuple[np.nd
     DegenerateInputError
         Fewer than ``min_points`` points, or all points (image or object) collinear.
     """
-    try:
-        x = np.asarray(points_px, dtype=float)
-    except (TypeError, ValueError):
-        raise InputError("points_px must be an (n, 2) array of numbers") from None
+    x = as_points_px(points_px)
     P = np.asarray(points_obj, dtype=float)
-    if x.ndim != 2 or x.shape[1] != 2:
-        raise InputError(f"points_px must have shape (n, 2), got {x.shape}")
     if len(x) != len(P):
         raise InputError(f"points_px has {len(x)} points but the model has {len(P)}; they must "
                          "correspond one to one")
-    if not np.isfinite(x).all():
-        raise InputError(f"points_px holds NaN or inf (at {np.argwhere(~np.isfinite(x))[0, 0]})")
     # the object-point checks depend on the model only: a model that passed once passes again
     # (only a pass is remembered, so failures raise in the same order as before)
     cache = model_cache(P) if P.ndim == 2 else {}
