@@ -126,7 +126,7 @@ def test_no_holder_and_holder_out_of_view(easy):
 def test_fit_model_to_contour_recovers_the_projection():
     """Model-guided fallback: the homography fitted to a noisy contour with a bump (a stain)
     puts the model's corners on the true ones."""
-    from cutterpose.features import _apply_h, fit_model_to_contour
+    from cutterpose.contour_model import _apply_h, fit_model_to_contour
 
     cam = small_camera()
     hol = default_holder()

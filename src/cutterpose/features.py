@@ -22,11 +22,9 @@ are straight. The corners are returned both ideal and observed (re-distorted).
 Beyond the paper (``refine=True``, the default): a fixed threshold puts the contour where the
 blurred edge crosses grey 70, not on the edge itself; the offset depends on blur, lighting and
 wear. Each characteristic line is therefore re-fitted to sub-pixel edge points found on the
-grey-level gradient: grey profiles are sampled along the line's normal (through the camera's
-distortion, on the unfiltered image), the edge point of a profile is the sub-pixel maximum of its
-derivative (parabola through the three samples around the peak), and the line is fitted with
-Huber-weighted total least squares. For an edge blurred by a symmetric point-spread function the
-gradient maximum is the edge itself, whatever the blur width and the two grey levels.
+grey-level gradient (:mod:`cutterpose.edges`, which also measures edge wear). When the paper's
+segmentation fails, the model's outline fitted to the contour gives the 20 lines instead
+(:mod:`cutterpose.contour_model`).
 
 Convention:
     Pixels as in :mod:`cutterpose.camera`: (u, v) with (0, 0) the centre of the top-left pixel,
@@ -52,13 +50,13 @@ import numpy as np
 from scipy.ndimage import gaussian_filter1d
 
 from .camera import Camera
+from .edges import edge_wear, fit_line, intersect_consecutive, line_from, refine_lines
 from .errors import FeatureError, ImageError
 from .holder import Holder
 from .pose import Pose
 
 __all__ = ["FeatureParams", "Features", "Segment", "load_image", "check_image", "find_roi",
-           "detect_features", "segment_contour", "refine_lines", "intersect_consecutive",
-           "edge_wear"]
+           "detect_features", "segment_contour"]
 
 
 #: focal length of the paper's camera in pixels (Table 1: f / s_y)
@@ -425,20 +423,6 @@ def _signed_area(p: np.ndarray) -> float:
 
 # ------------------------------------------------------------------------------------------
 # segmentation into lines and arcs
-def _fit_line(p: np.ndarray, w: np.ndarray | None = None):
-    """Total least squares line: centroid, unit direction, unit normal."""
-    if w is None:
-        c = p.mean(axis=0)
-        q = p - c
-        C = q.T @ q
-    else:
-        c = (w[:, None] * p).sum(axis=0) / w.sum()
-        q = p - c
-        C = (w[:, None] * q).T @ q
-    evals, evecs = np.linalg.eigh(C)
-    d = evecs[:, 1]
-    n = evecs[:, 0]
-    return c, d, n
 
 
 def _fit_circle_maxdev(p: np.ndarray) -> float:
@@ -463,7 +447,7 @@ def _split(p: np.ndarray, offset: int, params: FeatureParams, out: list) -> None
     length = float(np.linalg.norm(np.diff(p, axis=0), axis=1).sum()) if n > 1 else 0.0
     if length < params.min_primitive_px or n < 3:
         return
-    c, d, nrm = _fit_line(p)
+    c, d, nrm = fit_line(p)
     dev = np.abs((p - c) @ nrm)
     if dev.max() <= params.line_tol_px:
         out.append(Segment("line", offset, offset + n, p, length))
@@ -545,7 +529,7 @@ def _join_arcs(run: list[Segment], params: FeatureParams) -> list[Segment]:
         best = None
         while j < len(run) and run[j].start == run[j - 1].stop - 1:
             pts = np.vstack([r.points_ideal_px for r in run[k: j + 1]])
-            c, _, n = _fit_line(pts)
+            c, _, n = fit_line(pts)
             if np.abs((pts - c) @ n).max() <= params.line_tol_px \
                     or _fit_circle_maxdev(pts) > params.line_tol_px:
                 break
@@ -571,13 +555,13 @@ def _merge_collinear(segs: list[Segment], params: FeatureParams) -> list[Segment
         changed = False
         for k in range(len(segs)):
             a, b = segs[k], segs[(k + 1) % len(segs)]
-            ca, da, na = _fit_line(a.points_ideal_px)
-            cb, db, nb = _fit_line(b.points_ideal_px)
+            ca, da, na = fit_line(a.points_ideal_px)
+            cb, db, nb = fit_line(b.points_ideal_px)
             if abs(da @ db) < cos_tol:
                 continue
             # collinear: one line fits both within the line tolerance (RMS)
             both = np.vstack([a.points_ideal_px, b.points_ideal_px])
-            c, _, n = _fit_line(both)
+            c, _, n = fit_line(both)
             if np.sqrt(np.mean(((both - c) @ n) ** 2)) > params.merge_dist_px:
                 continue
             merged = Segment("line", a.start, b.stop, both,
@@ -590,202 +574,6 @@ def _merge_collinear(segs: list[Segment], params: FeatureParams) -> list[Segment
             break
     return segs
 
-
-# ------------------------------------------------------------------------------------------
-# lines and corners
-def _line_from(c, n) -> np.ndarray:
-    return np.array([n[0], n[1], -(n @ c)])
-
-
-def intersect_consecutive(lines: np.ndarray) -> np.ndarray:
-    """Corner k = intersection of lines k and k + 1 (cyclic), as (N, 2) points."""
-    L = np.asarray(lines, float)
-    X = np.cross(L, np.roll(L, -1, axis=0))
-    with np.errstate(divide="ignore", invalid="ignore"):
-        return X[:, :2] / X[:, 2:3]
-
-
-def _robust_line(p: np.ndarray, iterations: int = 5):
-    """Huber-weighted total least squares line (IRLS); returns centroid, direction, normal."""
-    c, d, n = _fit_line(p)
-    for _ in range(iterations):
-        r = (p - c) @ n
-        a = np.abs(r)
-        s = 1.4826 * np.median(a) + 1e-6  # residuals of a fitted line are centred
-        k = 1.5 * s
-        w = np.where(a <= k, 1.0, k / np.maximum(a, 1e-12))
-        c1, d, n1 = _fit_line(p, w)
-        if n1 @ n < 0:
-            n1 = -n1
-        moved = abs((c1 - c) @ n1) + float(np.linalg.norm(n1 - n)) * 1e3
-        c, n = c1, n1
-        if moved < 1e-4:  # converged (offset and tilt over 1000 px below 1e-4 px)
-            break
-    return c, d, n
-
-
-def _half_max_centroids(g: np.ndarray, o0: float, step: float):
-    """Sub-pixel edge position of each profile derivative ``g`` (rows): the centroid of
-    ``g - g_max / 2`` over the contiguous run around the maximum where ``g > g_max / 2``.
-
-    For a symmetric point-spread function the derivative of the edge profile is symmetric about
-    the edge, and so is its half-maximum run: the centroid is the edge, for narrow (Gaussian) and
-    flat-topped (defocus disk) blur alike. Rows whose run touches the window's end, or whose
-    maximum is weak (< 0.3 of the median maximum), are rejected.
-
-    Returns
-    -------
-    offsets : edge positions of the accepted rows; rows : their indices.
-    """
-    G = g.shape[1]
-    j = np.argmax(g, axis=1)
-    peak = g[np.arange(len(g)), j]
-    half = 0.5 * peak
-    idx = np.arange(G)
-    below = g <= half[:, None]
-    left = np.where(below & (idx < j[:, None]), idx, -1).max(axis=1)
-    right = np.where(below & (idx > j[:, None]), idx, G).min(axis=1)
-    inside = (idx > left[:, None]) & (idx < right[:, None])
-    w = np.where(inside, g - half[:, None], 0.0)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        cen = (w * idx).sum(axis=1) / w.sum(axis=1)
-    ok = (left >= 0) & (right < G) & (peak > 0) & np.isfinite(cen)
-    if ok.any():
-        ok &= peak > 0.3 * np.median(peak[ok])
-    rows = np.nonzero(ok)[0]
-    return o0 + step * cen[rows], rows
-
-
-def refine_lines(image: np.ndarray, roi_origin: np.ndarray, camera: Camera,
-                 lines_ideal: np.ndarray, spans: list, inward: np.ndarray,
-                 params: FeatureParams):
-    """Re-fit each line to sub-pixel edge points on the grey-level gradient.
-
-    For a line with inward normal ``n`` (towards the dark pocket), profiles
-    ``g(o) = I(distort(q + o n_out))`` are sampled at ``o in [-h, h]`` (step 0.25 px) for points
-    ``q`` spaced ``refine_step_px`` along the line's straight run; the edge point of a profile is
-    the sub-pixel maximum of ``dg/do`` (dark to bright). Lines are fitted with Huber IRLS.
-
-    Parameters
-    ----------
-    image : the ROI of the unfiltered grey image.
-    roi_origin : (u0, v0) of the ROI in the full image.
-    lines_ideal : (N, 3) initial lines (ideal px).
-    spans : per line, (t0, t1, c, d): its straight run as positions along direction d from c.
-    inward : (N, 2) unit normals towards the pocket.
-
-    Returns
-    -------
-    lines : (N, 3) refined lines (a line keeps its initial value if too few edge points).
-    edge_points_px : per line, (n_i, 2) observed pixels of the accepted edge points.
-    """
-    h = params.refine_half_width_px
-    offsets = np.arange(-h, h + 1e-9, 0.25)
-    img = image.astype(np.float32)
-    out_lines = np.array(lines_ideal, float)
-    for _ in range(max(1, params.refine_passes)):
-        out_lines, edges = _refine_pass(img, roi_origin, camera, out_lines, spans, inward,
-                                        params, offsets)
-    return out_lines, edges
-
-
-def _refine_pass(img, roi_origin, camera, lines_ideal, spans, inward, params, offsets):
-    out_lines = np.array(lines_ideal, float)
-    edges = []
-    for k, (t0, t1, c, d) in enumerate(spans):
-        t0, t1 = t0 + params.refine_trim_px, t1 - params.refine_trim_px
-        if t1 - t0 < 5 * params.refine_step_px:
-            edges.append(np.zeros((0, 2)))
-            continue
-        n_out = -inward[k]
-        ts = np.arange(t0, t1 + 1e-9, params.refine_step_px)
-        # project the run's points onto the current line
-        L = out_lines[k]
-        base = c + ts[:, None] * d
-        base = base - ((base @ L[:2]) + L[2])[:, None] * L[:2]
-        q = base[:, None, :] + offsets[None, :, None] * n_out  # (T, O, 2) ideal px
-        obs = camera.distort_px(q.reshape(-1, 2)) - roi_origin
-        mx = obs[:, 0].reshape(q.shape[:2]).astype(np.float32)
-        my = obs[:, 1].reshape(q.shape[:2]).astype(np.float32)
-        prof = cv2.remap(img, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-        if params.refine_sigma_px > 0:
-            prof = gaussian_filter1d(prof, params.refine_sigma_px / 0.25, axis=1)
-        g = np.diff(prof, axis=1)  # derivative at offsets[:-1] + 0.125
-        o, rows = _half_max_centroids(g, offsets[0] + 0.125, 0.25)
-        pts = base[rows] + o[:, None] * n_out
-        if len(pts) < 5:
-            edges.append(np.zeros((0, 2)))
-            continue
-        cc, dd, nn = _robust_line(pts)
-        out_lines[k] = _line_from(cc, nn)
-        edges.append(camera.distort_px(pts))
-    return out_lines, edges
-
-
-def edge_wear(image: np.ndarray, roi_origin: np.ndarray, camera: Camera, lines_ideal: np.ndarray,
-              spans: list, inward: np.ndarray, params: FeatureParams):
-    """How far each refined edge may lie outside the true edge because the face is not uniform
-    up to it (worn, rounded, dull or stained edge); beyond the paper.
-
-    A clean edge is a step from the pocket's grey to a uniform face blurred by the optics: the
-    face just outside the blur (2 blur half-widths from the edge) is as bright as farther out.
-    On a worn edge the face darkens towards the edge, part of the edge's contrast lies outside
-    the sharp step and the gradient's centroid (the refined edge) is pulled outwards by about
-    that fraction of the transition's width; where the true edge lies within the transition
-    the image cannot tell. Per line, on the median profile along its normal:
-
-    - ``w``: the blur half-width, from the gradient peak to the pocket-side 25 % crossing (the
-      pocket side is not worn);
-    - ``darkening = 1 - (I(e + 2w) - I_pocket) / (I_face_far - I_pocket)``, ``I_pocket =
-      I(e - 2w)``, ``I_face_far`` the median of ``I`` over ``[e + 2w + 6, e + 2w + 12]`` px;
-    - ``offset_px = max(|darkening| - 0.05, 0) * w``: the possible outward bias (the 0.05 floor
-      is above the +-0.01 measured on unworn faces).
-
-    Returns
-    -------
-    darkening, offset_px : (N,) per line (NaN where the profile has no usable edge).
-    """
-    step, hw = 0.5, params.refine_half_width_px
-    offsets = np.arange(-3 * hw, 5 * hw + 1e-9, step)  # outwards (face) positive
-    img = image.astype(np.float32)
-    n = len(lines_ideal)
-    dark, off = np.full(n, np.nan), np.full(n, np.nan)
-    for k, (t0, t1, c, d) in enumerate(spans):
-        t0, t1 = t0 + 2 * params.refine_trim_px, t1 - 2 * params.refine_trim_px
-        if t1 - t0 < 8:
-            continue
-        L = lines_ideal[k]
-        ts = np.arange(t0, t1, 4.0)  # a median profile: every 4th px is plenty
-        base = c + ts[:, None] * d
-        base = base - ((base @ L[:2]) + L[2])[:, None] * L[:2]
-        q = base[:, None, :] - offsets[None, :, None] * inward[k]
-        obs = camera.distort_px(q.reshape(-1, 2)) - roi_origin
-        prof = cv2.remap(img, obs[:, 0].reshape(q.shape[:2]).astype(np.float32),
-                         obs[:, 1].reshape(q.shape[:2]).astype(np.float32), cv2.INTER_LINEAR,
-                         borderMode=cv2.BORDER_REPLICATE)
-        m = gaussian_filter1d(np.median(prof, axis=0), params.refine_sigma_px / step)
-        g = np.diff(m)
-        go = offsets[:-1] + step / 2
-        near = np.abs(go) <= hw
-        j = int(np.argmax(np.where(near, g, -np.inf)))
-        if g[j] <= 0:
-            continue
-        i = j
-        while i > 0 and g[i] > 0.25 * g[j]:
-            i -= 1
-        w = max(go[j] - go[i], step)
-        e = go[j]
-        lo, hi = e + 2 * w + 6, e + 2 * w + 12
-        far = (offsets >= lo) & (offsets <= hi)
-        if not far.any() or e - 2 * w < offsets[0]:
-            continue
-        pocket = np.interp(e - 2 * w, offsets, m)
-        contrast = float(np.median(m[far]) - pocket)
-        if contrast <= 0:
-            continue
-        dark[k] = 1.0 - (np.interp(e + 2 * w, offsets, m) - pocket) / contrast
-        off[k] = max(abs(dark[k]) - 0.05, 0.0) * w
-    return dark, off
 
 
 # ------------------------------------------------------------------------------------------
@@ -870,17 +658,20 @@ def detect_features(image: np.ndarray, camera: Camera, holder: Holder,
                else " | ".join(f"threshold {lv}: {m}" for lv, m in errors))
     if params.model_fallback == "none" or not contours or not params.refine:
         raise FeatureError(msg)
-    # the paper's segmentation failed: lines from the model fitted to the contour
+    # the paper's segmentation failed: lines from the model fitted to the contour (imported
+    # here: contour_model builds on this module's Segment)
+    from .contour_model import check_edge_support, model_features
+
     try:
         level, contour_px, contour_ideal, segs, lines0, inward, spans, _ = \
-            _model_features(contours, sub, roi, camera, holder, params)
+            model_features(contours, sub, roi, camera, holder, params)
         lap("model fit")
         lines, edges = refine_lines(sub, origin, camera, lines0, spans, inward, params)
         lap("model refine")
         corners_ideal, corners_px = _corners(lines, camera)
         # corners may be hidden: the lines must instead rest on the edges' gradient, and the
         # corners stay near the fitted model's (a line that jumped to another edge does not)
-        _check_edge_support(lines, edges, spans, camera, params)
+        check_edge_support(lines, edges, spans, camera, params)
         gap = np.linalg.norm(corners_ideal - intersect_consecutive(lines0), axis=1)
         if gap.max() > params.max_corner_gap_px:
             k = int(np.argmax(gap))
@@ -939,14 +730,14 @@ def _initial_lines(contour_ideal, segs):
     inward = np.zeros((n, 2))
     spans = []
     for k, s in enumerate(segs):
-        c, d, _ = _fit_line(s.points_ideal_px)
+        c, d, _ = fit_line(s.points_ideal_px)
         trav = s.points_ideal_px[-1] - s.points_ideal_px[0]
         if trav @ d < 0:
             d = -d
         n_in = sign * np.array([-d[1], d[0]])
         inward[k] = n_in
         c = c + 0.5 * n_in
-        lines0[k] = _line_from(c, n_in)
+        lines0[k] = line_from(c, n_in)
         tt = (s.points_ideal_px - c) @ d
         spans.append((float(tt.min()), float(tt.max()), c, d))
     return lines0, inward, spans
@@ -1061,177 +852,3 @@ def _check_corner_angles(lines, params, segs):
             f"characteristic segments {k} and {(k + 1) % len(lines)} are nearly parallel "
             f"(they meet at {np.degrees(np.arccos(min(1.0, cosang[k]))):.0f} deg): a segment is "
             f"missing near {_where(segs[k].points_ideal_px[-1])} ideal px")
-
-
-# ------------------------------------------------------------------------------------------
-# model-guided fallback (beyond the paper)
-def _homography_nominal(camera: Camera, holder: Holder) -> np.ndarray:
-    """Homography holder plane (mm) -> ideal pixels at the nominal pose."""
-    R, t = Pose.nominal().R, Pose.nominal().t_mm
-    return camera.K @ np.column_stack([R[:, 0], R[:, 1], t])
-
-
-def _apply_h(H: np.ndarray, p: np.ndarray) -> np.ndarray:
-    q = np.column_stack([p, np.ones(len(p))]) @ H.T
-    return q[:, :2] / q[:, 2:3]
-
-
-def _moments(p: np.ndarray):
-    m = cv2.moments(p.astype(np.float32).reshape(-1, 1, 2))
-    if abs(m["m00"]) < 1e-9:
-        return None
-    c = np.array([m["m10"], m["m01"]]) / m["m00"]
-    theta = 0.5 * np.arctan2(2 * m["mu11"], m["mu20"] - m["mu02"])
-    return abs(m["m00"]), c, theta
-
-
-def _fit_h_lines(model_lines, pts, w):
-    """Homography H (plane -> image) with each image point ``pts[i]`` on the plane line
-    ``model_lines[i]``: ``l^T H^-1 p = 0`` is linear in ``G = H^-1``; weighted SVD on
-    normalised pixels."""
-    c = pts.mean(axis=0)
-    s = np.sqrt(2) / max(np.sqrt(((pts - c) ** 2).sum(axis=1)).mean(), 1e-9)
-    T = np.array([[s, 0, -s * c[0]], [0, s, -s * c[1]], [0, 0, 1.0]])
-    ph = np.column_stack([(pts - c) * s, np.ones(len(pts))])
-    A = (model_lines[:, :, None] * ph[:, None, :]).reshape(len(pts), 9) * w[:, None]
-    _, v = np.linalg.eigh(A.T @ A)  # 9 x 9: much cheaper than the SVD of A
-    G = v[:, 0].reshape(3, 3) @ T
-    H = np.linalg.inv(G)
-    return H / H[2, 2]
-
-
-def _edge_distances(H, model, pts):
-    """Distance of each point to each projected model edge (segment), (M, N)."""
-    C = _apply_h(H, model)
-    a, d = C, np.roll(C, -1, axis=0) - C
-    tt = np.clip(((pts[:, None, :] - a[None]) * d[None]).sum(axis=2) / (d ** 2).sum(axis=1),
-                 0, 1)
-    return np.linalg.norm(pts[:, None, :] - (a[None] + tt[..., None] * d[None]), axis=2)
-
-
-def fit_model_to_contour(contour_ideal: np.ndarray, camera: Camera, holder: Holder,
-                         gates_px=(40.0, 20.0, 10.0, 6.0, 4.0, 4.0)):
-    """Fit the holder's inner contour (a plane polygon) to an image contour by a homography.
-
-    Initial guess: the nominal projection moved, turned and scaled onto the contour's centroid,
-    principal axis and area (image moments). Then closest-edge assignment (ICP) with a
-    shrinking gate, each time a Huber-weighted fit of the points to their model lines
-    (:func:`_fit_h_lines`, a few reweighting steps).
-
-    Returns
-    -------
-    H : (3, 3) homography holder plane (mm) -> ideal pixels.
-    assign : (M,) index of the model edge each contour point is closest to.
-    dist : (M,) its distance to that edge (ideal px).
-    """
-    model = np.asarray(holder.corners_mm, float)
-    lines = holder.edge_lines
-    H0 = _homography_nominal(camera, holder)
-    mi, mn = _moments(contour_ideal), _moments(_apply_h(H0, model))
-    if mi is None or mn is None:
-        raise FeatureError("the inside contour encloses no area")
-    (ai, ci, ti), (an, cn, tn) = mi, mn
-    dt = (ti - tn + np.pi / 2) % np.pi - np.pi / 2  # the axis is known up to 180 deg
-    s = np.sqrt(ai / an)
-    cs, sn = s * np.cos(dt), s * np.sin(dt)
-    S = np.array([[cs, -sn, 0], [sn, cs, 0], [0, 0, 1.0]])
-    S[:2, 2] = ci - S[:2, :2] @ cn
-    H = S @ H0
-    H = H / H[2, 2]
-    all_pts = np.asarray(contour_ideal, float)
-    for gate in gates_px:
-        # coarse gates: every 4th contour point is plenty (one point per pixel); speed
-        pts = all_pts[::4] if gate > 6.0 else all_pts
-        D = _edge_distances(H, model, pts)
-        assign = np.argmin(D, axis=1)
-        dist = D[np.arange(len(pts)), assign]
-        use = dist < gate
-        if use.sum() < 16:
-            raise FeatureError("the inside contour does not resemble the holder's pocket")
-        p, ln = pts[use], lines[assign[use]]
-        w = np.ones(len(p))
-        for _ in range(3):
-            H = _fit_h_lines(ln, p, w)
-            # geometric residual: plane distance (mm) times the local scale (px / mm)
-            q = np.column_stack([p, np.ones(len(p))]) @ np.linalg.inv(H).T
-            r_mm = (ln * q).sum(axis=1) / q[:, 2]
-            r = r_mm * np.sqrt(abs(np.linalg.det(H[:2, :2])))
-            k = max(1.0, gate / 4)
-            w = np.where(np.abs(r) <= k, 1.0, k / np.maximum(np.abs(r), 1e-12)) / np.abs(q[:, 2])
-    D = _edge_distances(H, model, all_pts)
-    assign = np.argmin(D, axis=1)
-    return H, assign, D[np.arange(len(all_pts)), assign]
-
-
-def _model_features(contours: list, sub, roi, camera: Camera, holder: Holder,
-                    params: FeatureParams):
-    """Lines of the holder's 20 edges from the model fitted to the thresholded contour, then the
-    gradient refinement; the fallback when the paper's segmentation does not give the 20
-    characteristic segments (worn, chipped or stained edges, occluded corners).
-
-    ``contours``: (level, contour_px, contour_ideal) of each threshold tried. The one whose fit
-    covers most of the model's perimeter is used. Returns what :func:`detect_features` needs.
-    """
-    model = np.asarray(holder.corners_mm, float)
-    n = len(model)
-    tol = params.line_tol_px
-    best = None
-    perimeter = np.linalg.norm(np.diff(_apply_h(_homography_nominal(camera, holder), model),
-                                       axis=0, append=np.nan), axis=1)
-    perimeter = float(np.nansum(perimeter))
-    for level, cpx, cid in contours:
-        if len(cid) < 0.5 * perimeter:  # a stain's hole, not the pocket
-            continue
-        try:
-            H, assign, dist = fit_model_to_contour(cid, camera, holder)
-        except (FeatureError, np.linalg.LinAlgError, ValueError):
-            continue
-        C = _apply_h(H, model)
-        lengths = np.linalg.norm(np.roll(C, -1, axis=0) - C, axis=1)
-        inl = np.abs(dist) < tol
-        covered = np.bincount(assign[inl], minlength=n)[:n]
-        # coverage: contour points (about 1 per px) on an edge, over its length
-        score = float(np.minimum(covered / np.maximum(lengths, 1), 1.0) @ lengths
-                      / lengths.sum())
-        if best is None or score > best[0]:
-            best = (score, level, cpx, cid, H, assign, inl, C)
-    if best is None:
-        raise FeatureError("the model of the pocket could not be fitted to any inside contour")
-    score, level, cpx, cid, H, assign, inl, C = best
-    if score < 0.5:
-        raise FeatureError(f"only {100 * score:.0f} % of the pocket's outline found on the "
-                           f"best contour (threshold {level}): holder hidden or not in view")
-    sign = np.sign(_signed_area(C))
-    segs, lines0, inward, spans = [], np.zeros((n, 3)), np.zeros((n, 2)), []
-    margin = params.refine_half_width_px
-    for k in range(n):
-        a, b = C[k], C[(k + 1) % n]
-        L = float(np.linalg.norm(b - a))
-        d = (b - a) / L
-        n_in = sign * np.array([-d[1], d[0]])
-        lines0[k] = _line_from(a, n_in)
-        inward[k] = n_in
-        spans.append((margin, L - margin, a, d))
-        idx = np.nonzero((assign == k) & inl)[0]
-        segs.append(Segment("line", int(idx.min()) if len(idx) else 0,
-                            int(idx.max()) + 1 if len(idx) else 0, cid[idx], float(len(idx))))
-    return level, cpx, cid, segs, lines0, inward, spans, score
-
-
-def _check_edge_support(lines, edges, spans, camera, params):
-    """Each refined line must rest on gradient edge points along a good part of its length
-    (a hidden or broken edge gives few, scattered points)."""
-    for k, (L, e, sp) in enumerate(zip(lines, edges, spans)):
-        length = max(sp[1] - sp[0] - 2 * params.refine_trim_px, 1.0)
-        if len(e):
-            r = np.abs(camera.undistort_px(e) @ L[:2] + L[2])
-            support = float((r < 1.0).sum()) * params.refine_step_px / length
-        else:
-            support = 0.0
-        min_fraction = params.min_edge_support
-        if support < min_fraction:
-            mid = camera.distort_px((sp[2] + 0.5 * (sp[0] + sp[1]) * sp[3])[None])[0]
-            raise FeatureError(
-                f"edge {k} near {_where(mid)} px: gradient edge found along only "
-                f"{100 * support:.0f} % of it (< {100 * min_fraction:.0f} %): occluded or "
-                "damaged")

@@ -222,7 +222,7 @@ def edge_wear_effect(pose: Pose, features: Features, camera: Camera, holder: Hol
     # wear acts on the whole outline: the median offset, moved uniformly (one line darkened by
     # an occluder or a stain beside it is not wear, and the corner checks see local defects)
     off = np.full(len(off), float(np.nanmedian(off)))
-    from .features import intersect_consecutive
+    from .edges import intersect_consecutive
 
     L = np.array(features.lines_ideal, float)
     # moving the line by off along the inward normal n: c' = c - off (a, b) . n

@@ -1,0 +1,202 @@
+"""Model-guided recovery of the 20 characteristic lines (beyond the paper's section 2.1).
+
+When the paper's segmentation does not give 20 consistent segments (wear, an occluder, a bad
+threshold), the holder's pocket outline is fitted to the thresholded contour by a homography of
+the holder plane, refined by repeated nearest-edge matching; the 20 edges then go through the
+same gradient refinement as the paper's lines (:mod:`cutterpose.edges`). An edge supported
+along too little of its length is refused.
+
+Convention:
+    Ideal pixels and homogeneous lines as in :mod:`cutterpose.features`.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import cv2
+import numpy as np
+
+from .camera import Camera
+from .edges import line_from
+from .errors import FeatureError
+from .features import Segment, _signed_area, _where
+from .holder import Holder
+from .pose import Pose
+
+if TYPE_CHECKING:
+    from .features import FeatureParams
+
+
+# ------------------------------------------------------------------------------------------
+# model-guided fallback (beyond the paper)
+def _homography_nominal(camera: Camera, holder: Holder) -> np.ndarray:
+    """Homography holder plane (mm) -> ideal pixels at the nominal pose."""
+    R, t = Pose.nominal().R, Pose.nominal().t_mm
+    return camera.K @ np.column_stack([R[:, 0], R[:, 1], t])
+
+
+def _apply_h(H: np.ndarray, p: np.ndarray) -> np.ndarray:
+    q = np.column_stack([p, np.ones(len(p))]) @ H.T
+    return q[:, :2] / q[:, 2:3]
+
+
+def _moments(p: np.ndarray):
+    m = cv2.moments(p.astype(np.float32).reshape(-1, 1, 2))
+    if abs(m["m00"]) < 1e-9:
+        return None
+    c = np.array([m["m10"], m["m01"]]) / m["m00"]
+    theta = 0.5 * np.arctan2(2 * m["mu11"], m["mu20"] - m["mu02"])
+    return abs(m["m00"]), c, theta
+
+
+def _fit_h_lines(model_lines, pts, w):
+    """Homography H (plane -> image) with each image point ``pts[i]`` on the plane line
+    ``model_lines[i]``: ``l^T H^-1 p = 0`` is linear in ``G = H^-1``; weighted SVD on
+    normalised pixels."""
+    c = pts.mean(axis=0)
+    s = np.sqrt(2) / max(np.sqrt(((pts - c) ** 2).sum(axis=1)).mean(), 1e-9)
+    T = np.array([[s, 0, -s * c[0]], [0, s, -s * c[1]], [0, 0, 1.0]])
+    ph = np.column_stack([(pts - c) * s, np.ones(len(pts))])
+    A = (model_lines[:, :, None] * ph[:, None, :]).reshape(len(pts), 9) * w[:, None]
+    _, v = np.linalg.eigh(A.T @ A)  # 9 x 9: much cheaper than the SVD of A
+    G = v[:, 0].reshape(3, 3) @ T
+    H = np.linalg.inv(G)
+    return H / H[2, 2]
+
+
+def _edge_distances(H, model, pts):
+    """Distance of each point to each projected model edge (segment), (M, N)."""
+    C = _apply_h(H, model)
+    a, d = C, np.roll(C, -1, axis=0) - C
+    tt = np.clip(((pts[:, None, :] - a[None]) * d[None]).sum(axis=2) / (d ** 2).sum(axis=1),
+                 0, 1)
+    return np.linalg.norm(pts[:, None, :] - (a[None] + tt[..., None] * d[None]), axis=2)
+
+
+def fit_model_to_contour(contour_ideal: np.ndarray, camera: Camera, holder: Holder,
+                         gates_px=(40.0, 20.0, 10.0, 6.0, 4.0, 4.0)):
+    """Fit the holder's inner contour (a plane polygon) to an image contour by a homography.
+
+    Initial guess: the nominal projection moved, turned and scaled onto the contour's centroid,
+    principal axis and area (image moments). Then closest-edge assignment (ICP) with a
+    shrinking gate, each time a Huber-weighted fit of the points to their model lines
+    (:func:`_fit_h_lines`, a few reweighting steps).
+
+    Returns
+    -------
+    H : (3, 3) homography holder plane (mm) -> ideal pixels.
+    assign : (M,) index of the model edge each contour point is closest to.
+    dist : (M,) its distance to that edge (ideal px).
+    """
+    model = np.asarray(holder.corners_mm, float)
+    lines = holder.edge_lines
+    H0 = _homography_nominal(camera, holder)
+    mi, mn = _moments(contour_ideal), _moments(_apply_h(H0, model))
+    if mi is None or mn is None:
+        raise FeatureError("the inside contour encloses no area")
+    (ai, ci, ti), (an, cn, tn) = mi, mn
+    dt = (ti - tn + np.pi / 2) % np.pi - np.pi / 2  # the axis is known up to 180 deg
+    s = np.sqrt(ai / an)
+    cs, sn = s * np.cos(dt), s * np.sin(dt)
+    S = np.array([[cs, -sn, 0], [sn, cs, 0], [0, 0, 1.0]])
+    S[:2, 2] = ci - S[:2, :2] @ cn
+    H = S @ H0
+    H = H / H[2, 2]
+    all_pts = np.asarray(contour_ideal, float)
+    for gate in gates_px:
+        # coarse gates: every 4th contour point is plenty (one point per pixel); speed
+        pts = all_pts[::4] if gate > 6.0 else all_pts
+        D = _edge_distances(H, model, pts)
+        assign = np.argmin(D, axis=1)
+        dist = D[np.arange(len(pts)), assign]
+        use = dist < gate
+        if use.sum() < 16:
+            raise FeatureError("the inside contour does not resemble the holder's pocket")
+        p, ln = pts[use], lines[assign[use]]
+        w = np.ones(len(p))
+        for _ in range(3):
+            H = _fit_h_lines(ln, p, w)
+            # geometric residual: plane distance (mm) times the local scale (px / mm)
+            q = np.column_stack([p, np.ones(len(p))]) @ np.linalg.inv(H).T
+            r_mm = (ln * q).sum(axis=1) / q[:, 2]
+            r = r_mm * np.sqrt(abs(np.linalg.det(H[:2, :2])))
+            k = max(1.0, gate / 4)
+            w = np.where(np.abs(r) <= k, 1.0, k / np.maximum(np.abs(r), 1e-12)) / np.abs(q[:, 2])
+    D = _edge_distances(H, model, all_pts)
+    assign = np.argmin(D, axis=1)
+    return H, assign, D[np.arange(len(all_pts)), assign]
+
+
+def model_features(contours: list, sub, roi, camera: Camera, holder: Holder,
+                    params: FeatureParams):
+    """Lines of the holder's 20 edges from the model fitted to the thresholded contour, then the
+    gradient refinement; the fallback when the paper's segmentation does not give the 20
+    characteristic segments (worn, chipped or stained edges, occluded corners).
+
+    ``contours``: (level, contour_px, contour_ideal) of each threshold tried. The one whose fit
+    covers most of the model's perimeter is used. Returns what :func:`detect_features` needs.
+    """
+    model = np.asarray(holder.corners_mm, float)
+    n = len(model)
+    tol = params.line_tol_px
+    best = None
+    perimeter = np.linalg.norm(np.diff(_apply_h(_homography_nominal(camera, holder), model),
+                                       axis=0, append=np.nan), axis=1)
+    perimeter = float(np.nansum(perimeter))
+    for level, cpx, cid in contours:
+        if len(cid) < 0.5 * perimeter:  # a stain's hole, not the pocket
+            continue
+        try:
+            H, assign, dist = fit_model_to_contour(cid, camera, holder)
+        except (FeatureError, np.linalg.LinAlgError, ValueError):
+            continue
+        C = _apply_h(H, model)
+        lengths = np.linalg.norm(np.roll(C, -1, axis=0) - C, axis=1)
+        inl = np.abs(dist) < tol
+        covered = np.bincount(assign[inl], minlength=n)[:n]
+        # coverage: contour points (about 1 per px) on an edge, over its length
+        score = float(np.minimum(covered / np.maximum(lengths, 1), 1.0) @ lengths
+                      / lengths.sum())
+        if best is None or score > best[0]:
+            best = (score, level, cpx, cid, H, assign, inl, C)
+    if best is None:
+        raise FeatureError("the model of the pocket could not be fitted to any inside contour")
+    score, level, cpx, cid, H, assign, inl, C = best
+    if score < 0.5:
+        raise FeatureError(f"only {100 * score:.0f} % of the pocket's outline found on the "
+                           f"best contour (threshold {level}): holder hidden or not in view")
+    sign = np.sign(_signed_area(C))
+    segs, lines0, inward, spans = [], np.zeros((n, 3)), np.zeros((n, 2)), []
+    margin = params.refine_half_width_px
+    for k in range(n):
+        a, b = C[k], C[(k + 1) % n]
+        L = float(np.linalg.norm(b - a))
+        d = (b - a) / L
+        n_in = sign * np.array([-d[1], d[0]])
+        lines0[k] = line_from(a, n_in)
+        inward[k] = n_in
+        spans.append((margin, L - margin, a, d))
+        idx = np.nonzero((assign == k) & inl)[0]
+        segs.append(Segment("line", int(idx.min()) if len(idx) else 0,
+                            int(idx.max()) + 1 if len(idx) else 0, cid[idx], float(len(idx))))
+    return level, cpx, cid, segs, lines0, inward, spans, score
+
+
+def check_edge_support(lines, edges, spans, camera, params):
+    """Each refined line must rest on gradient edge points along a good part of its length
+    (a hidden or broken edge gives few, scattered points)."""
+    for k, (L, e, sp) in enumerate(zip(lines, edges, spans)):
+        length = max(sp[1] - sp[0] - 2 * params.refine_trim_px, 1.0)
+        if len(e):
+            r = np.abs(camera.undistort_px(e) @ L[:2] + L[2])
+            support = float((r < 1.0).sum()) * params.refine_step_px / length
+        else:
+            support = 0.0
+        min_fraction = params.min_edge_support
+        if support < min_fraction:
+            mid = camera.distort_px((sp[2] + 0.5 * (sp[0] + sp[1]) * sp[3])[None])[0]
+            raise FeatureError(
+                f"edge {k} near {_where(mid)} px: gradient edge found along only "
+                f"{100 * support:.0f} % of it (< {100 * min_fraction:.0f} %): occluded or "
+                "damaged")
