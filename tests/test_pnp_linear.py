@@ -105,14 +105,19 @@ def test_refined_noise_free(name, planar_trials, cam_syn):
         assert e[0] < 1e-6 and e[1] < 1e-6, e
 
 
+def _noisy_sets(rng, cam, sigma_px, n_holder, n_box, seed):
+    """(object points, noisy pixels) pairs: protocol holder trials, then random 3-D boxes."""
+    tr = generate_trials(n_holder, sigma_px, seed=seed)
+    sets = [(tr.points_holder_mm, tr.points_px[i]) for i in range(n_holder)]
+    sets += [(P, _project(cam, P, R, t) + rng.normal(0, sigma_px, (20, 2)))
+             for P, R, t in _box_trials(rng, n_box)]
+    return sets
+
+
 @pytest.mark.parametrize("name", ALL)
 def test_permutation_invariance(name, cam_syn):
     rng = np.random.default_rng(21)
-    tr = generate_trials(5, 2.0, seed=5)
-    box = _box_trials(rng, 3)
-    sets = [(tr.points_holder_mm, tr.points_px[i]) for i in range(5)]
-    sets += [(P, _project(cam_syn, P, R, t) + rng.normal(0, 2.0, (20, 2))) for P, R, t in box]
-    for P, px in sets:
+    for P, px in _noisy_sets(rng, cam_syn, 2.0, n_holder=5, n_box=3, seed=5):
         perm = rng.permutation(len(P))
         a = _solve(name, px, cam_syn, P)
         b = _solve(name, px[perm], cam_syn, P[perm])
@@ -124,11 +129,7 @@ def test_permutation_invariance(name, cam_syn):
 def test_scale_covariance(name, cam_syn):
     """Scaling the object (and t) by k leaves the image unchanged: R the same, t times k."""
     rng = np.random.default_rng(4)
-    tr = generate_trials(4, 1.5, seed=9)
-    box = _box_trials(rng, 2)
-    sets = [(tr.points_holder_mm, tr.points_px[i]) for i in range(4)]
-    sets += [(P, _project(cam_syn, P, R, t) + rng.normal(0, 1.5, (20, 2))) for P, R, t in box]
-    for P, px in sets:
+    for P, px in _noisy_sets(rng, cam_syn, 1.5, n_holder=4, n_box=2, seed=9):
         a = _solve(name, px, cam_syn, P)
         for k in (1e-3, 25.0):
             b = _solve(name, px, cam_syn, k * P)

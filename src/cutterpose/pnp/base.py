@@ -41,17 +41,22 @@ __all__ = ["model_points", "model_cache", "check_correspondences", "reprojection
 Candidate = tuple[np.ndarray, np.ndarray]
 
 
+def _as_rows(a, cols: int, what: str) -> np.ndarray:
+    """``a`` as an (n, cols) float array, else :class:`InputError` naming ``what``."""
+    try:
+        x = np.asarray(a, dtype=float)
+    except (TypeError, ValueError):
+        raise InputError(f"{what} must be an (n, {cols}) array of numbers") from None
+    if x.ndim != 2 or x.shape[1] != cols:
+        raise InputError(f"{what} must have shape (n, {cols}), got {x.shape}")
+    return x
+
+
 def model_points(model) -> np.ndarray:
     """(n, 3) object points of a holder or of a point array."""
     if isinstance(model, Holder):
         return model.points_holder_mm
-    try:
-        P = np.asarray(model, dtype=float)
-    except (TypeError, ValueError):
-        raise InputError("model must be a Holder or an (n, 3) array of object points") from None
-    if P.ndim != 2 or P.shape[1] != 3:
-        raise InputError(f"object points must have shape (n, 3), got {P.shape}")
-    return P
+    return _as_rows(model, 3, "object points (or a Holder)")
 
 
 def model_cache(P: np.ndarray) -> dict:
@@ -74,12 +79,7 @@ _MODEL_CACHE_SIZE = 64
 
 def as_points_px(points_px) -> np.ndarray:
     """``points_px`` as an (n, 2) float array of finite numbers, else :class:`InputError`."""
-    try:
-        x = np.asarray(points_px, dtype=float)
-    except (TypeError, ValueError):
-        raise InputError("points_px must be an (n, 2) array of numbers") from None
-    if x.ndim != 2 or x.shape[1] != 2:
-        raise InputError(f"points_px must have shape (n, 2), got {x.shape}")
+    x = _as_rows(points_px, 2, "points_px")
     if not np.isfinite(x).all():
         raise InputError(f"points_px holds NaN or inf (at point "
                          f"{np.argwhere(~np.isfinite(x))[0, 0]})")
