@@ -41,7 +41,7 @@ from .estimate import PoseEstimate
 from .features import FeatureParams, Features, detect_features, load_image
 from .holder import Holder, default_holder
 from .methods import get_method
-from .pose import Pose, rotation_from_euler_deg
+from .pose import Pose, pixel_jacobian, rotation_from_euler_deg
 
 __all__ = ["QualityLimits", "Quality", "Measurement", "measure", "measure_features",
            "order_for_model", "pose_std", "demo", "DOF_NAMES", "edge_wear_effect"]
@@ -197,15 +197,9 @@ def _project_ideal(dof: np.ndarray, camera: Camera, holder: Holder) -> np.ndarra
     return x @ K[:2, :2].T + K[:2, 2]
 
 
-def _jacobian(dof, camera, holder):
-    h = np.array([1e-4, 1e-4, 1e-4, 1e-3, 1e-3, 1e-3])
-    J = np.empty((holder.points_holder_mm.shape[0] * 2, 6))
-    for k in range(6):
-        dp = np.zeros(6)
-        dp[k] = h[k]
-        J[:, k] = ((_project_ideal(dof + dp, camera, holder)
-                    - _project_ideal(dof - dp, camera, holder)) / (2 * h[k])).ravel()
-    return J
+def _jacobian(pose: Pose, camera: Camera, holder: Holder) -> np.ndarray:
+    """(2N, 6) Jacobian of the ideal pixels w.r.t. the DOFs (analytic, :func:`pixel_jacobian`)."""
+    return pixel_jacobian(pose.R, pose.t_mm, holder.points_holder_mm, camera.K)[0]
 
 
 def edge_wear_effect(pose: Pose, features: Features, camera: Camera, holder: Holder
@@ -232,7 +226,7 @@ def edge_wear_effect(pose: Pose, features: Features, camera: Camera, holder: Hol
         return np.full(6, np.nan), float(np.median(off))
     dof = pose.dof
     proj = _project_ideal(dof, camera, holder)
-    J = _jacobian(dof, camera, holder)
+    J = _jacobian(pose, camera, holder)
     a = _match_to_projection(np.asarray(features.corners_ideal_px, float), proj)
     b = _match_to_projection(moved, proj)
     shift = np.linalg.lstsq(J, (b - a).ravel(), rcond=None)[0]
@@ -252,7 +246,7 @@ def pose_std(pose: Pose, corners_ideal_px: np.ndarray, camera: Camera, holder: H
     proj = _project_ideal(dof, camera, holder)
     det = _match_to_projection(np.asarray(corners_ideal_px, float), proj)
     r = (det - proj)
-    J = _jacobian(dof, camera, holder)
+    J = _jacobian(pose, camera, holder)
     dof_free = r.size - 6
     s2 = float(np.sum(r ** 2)) / max(dof_free, 1)
     try:

@@ -33,7 +33,7 @@ from ..camera import Camera, PinholeCamera, default_camera
 from ..errors import InputError
 from ..holder import Holder, default_holder, holder_from_dict
 from ..methods import Method, get_method
-from ..pose import rotation_from_euler_deg
+from ..pose import pixel_jacobian, rotation_from_euler_deg
 from .report import summarize, trial_rows, write_summary, write_trials_csv
 
 ANGLE_RANGE_DEG = 60.0
@@ -183,45 +183,6 @@ def holder_for_points(points_holder_mm: np.ndarray) -> Holder | None:
 
 # ---------------------------------------------------------------------------------------------
 # Cramer-Rao bound
-def pixel_jacobian(R_cam_holder, t_cam_holder_mm, points_holder_mm, K) -> np.ndarray:
-    """Analytic Jacobian of the projected pixels w.r.t. (alpha, beta, gamma [deg], X, Y, Z [mm]).
-
-    Returns ``(T, 2N, 6)``, rows ordered ``u_1, v_1, u_2, v_2, ...``. Pinhole ``K`` (trials of the
-    synthetic protocol).
-    """
-    R = np.asarray(R_cam_holder, float).reshape(-1, 3, 3)
-    t = np.asarray(t_cam_holder_mm, float).reshape(-1, 3)
-    P = np.asarray(points_holder_mm, float)
-    from ..pose import euler_deg_from_rotation
-
-    e = np.radians(euler_deg_from_rotation(R))
-    a, b, g = e[:, 0], e[:, 1], e[:, 2]
-    ca, sa, cb, sb, cg, sg = np.cos(a), np.sin(a), np.cos(b), np.sin(b), np.cos(g), np.sin(g)
-    z, o = np.zeros_like(a), np.ones_like(a)
-
-    def m(*rows):
-        return np.stack([np.stack(r, axis=-1) for r in rows], axis=-2)
-
-    Rx = m((o, z, z), (z, ca, -sa), (z, sa, ca))
-    Ry = m((cb, z, sb), (z, o, z), (-sb, z, cb))
-    Rz = m((cg, -sg, z), (sg, cg, z), (z, z, o))
-    dRx = m((z, z, z), (z, -sa, -ca), (z, ca, -sa))
-    dRy = m((-sb, z, cb), (z, z, z), (-cb, z, -sb))
-    dRz = m((-sg, -cg, z), (cg, -sg, z), (z, z, z))
-    deg = np.pi / 180.0
-    dR = np.stack([Rz @ Ry @ dRx, Rz @ dRy @ Rx, dRz @ Ry @ Rx], axis=1) * deg  # (T,3,3,3)
-    X = np.einsum("tij,nj->tni", R, P) + t[:, None, :]  # (T,N,3)
-    dX_rot = np.einsum("tkij,nj->tnik", dR, P)  # (T,N,3,3): d X / d angle_k
-    dX = np.concatenate([dX_rot, np.broadcast_to(np.eye(3), dX_rot.shape)], axis=-1)  # (T,N,3,6)
-    fx, s, fy = K[0, 0], K[0, 1], K[1, 1]
-    x, y, zz = X[..., 0], X[..., 1], X[..., 2]
-    du = np.stack([fx / zz, s / zz, -(fx * x + s * y) / zz**2], axis=-1)  # (T,N,3)
-    dv = np.stack([np.zeros_like(zz), fy / zz, -fy * y / zz**2], axis=-1)
-    Ju = np.einsum("tni,tnik->tnk", du, dX)
-    Jv = np.einsum("tni,tnik->tnk", dv, dX)
-    return np.stack([Ju, Jv], axis=2).reshape(len(R), -1, 6)
-
-
 def crlb_std(trials: Trials, sigma_px: float | None = None) -> np.ndarray:
     """The protocol's bound on the std per DOF: root mean over trials of the per-trial bound
     variances ``sigma^2 diag((J^T J)^-1)``; returns (6,)."""
