@@ -315,7 +315,13 @@ def test_model_cache_follows_the_array_contents(cam_syn, holder):
 
 
 def test_linear_algebra_helpers_match_numpy():
-    from cutterpose.pnp.base import align_rigid_many, kron_normal, smallest_eigvecs, svd_small
+    from cutterpose.pnp.base import (
+        align_rigid_many,
+        image_weights,
+        kron_normal,
+        smallest_eigvecs,
+        svd_small,
+    )
 
     rng = np.random.default_rng(3)
     n, m = 20, rng.normal(size=(20, 2))
@@ -330,6 +336,8 @@ def test_linear_algebra_helpers_match_numpy():
         A = np.vstack(rows)
         np.testing.assert_allclose(kron_normal(O, m, coord_outer), A.T @ A, rtol=1e-12,
                                    atol=1e-12)
+        np.testing.assert_array_equal(kron_normal(O, None, coord_outer, E=image_weights(m)),
+                                      kron_normal(O, m, coord_outer))
     S = rng.normal(size=(12, 12))
     S = S @ S.T
     V = smallest_eigvecs(S, 3)
@@ -350,6 +358,122 @@ def test_linear_algebra_helpers_match_numpy():
             R0 = U @ np.diag([1, 1, np.sign(np.linalg.det(U) * np.linalg.det(Vt))]) @ Vt
             np.testing.assert_allclose(R, R0, atol=1e-12)
             np.testing.assert_allclose(t, X.mean(0) - R0 @ P.mean(0), atol=1e-9)
+
+
+def _rpnp_plain_cost_derivative(P, cos, i1, i2):
+    """G = sum_i f_i f_i' with the quartics' coefficients written out (notes section 3 step 4)."""
+    c12 = cos[i1, i2]
+    s12_2 = 1.0 - c12**2
+    D12 = np.sum((P[i1] - P[i2]) ** 2)
+    G = np.zeros(8)
+    for i in range(len(P)):
+        if i in (i1, i2):
+            continue
+        c1i, c2i = cos[i1, i], cos[i2, i]
+        A1 = np.sum((P[i] - P[i1]) ** 2) / D12
+        A6 = (np.sum((P[i] - P[i2]) ** 2) - D12 - np.sum((P[i] - P[i1]) ** 2)) / (2 * D12)
+        A2 = A1 * s12_2 - (1 - c1i**2)
+        A3 = c1i * c2i - c12
+        A4 = c12 * c2i - c1i
+        A7 = s12_2 - c1i**2 + c12 * c1i * c2i + A6 * s12_2
+        g = [A6**2 - A1 * c2i**2, 2 * (A3 * A6 - A1 * A4 * c2i),
+             A3**2 + 2 * A6 * A7 - A1 * A4**2 - A2 * c2i**2, 2 * (A3 * A7 - A2 * A4 * c2i),
+             A7**2 - A2 * A4**2]
+        G += np.polymul(g, np.polyder(g))
+    return G
+
+
+def _rpnp_plain_recover(t, b, m, Pa, i1, i2):
+    """Camera-frame points for the root t by the explicit 2n x 5 least squares in (c, s, T),
+    then T refitted for the normalised (c, s)."""
+    from cutterpose.pnp.rpnp import _complete_frame
+
+    ax = (b[i1] @ b[i2] + t) * b[i2] - b[i1]
+    R_x = _complete_frame(ax / np.linalg.norm(ax))
+    zero = np.zeros(len(Pa))
+    # X = F0 + c Fc + s Fs + T
+    terms = [np.column_stack(v) @ R_x.T for v in ([Pa[:, 0], zero, zero],
+                                                  [zero, Pa[:, 1], Pa[:, 2]],
+                                                  [zero, -Pa[:, 2], Pa[:, 1]])]
+    rows = []
+    for k in (0, 1):  # u X3 - X1 = 0, v X3 - X2 = 0
+        cols = [m[:, k] * F[:, 2] - F[:, k] for F in terms]
+        e = np.zeros((len(m), 3))
+        e[:, k], e[:, 2] = -1.0, m[:, k]
+        rows.append(np.column_stack([cols[1], cols[2], e, -cols[0]]))
+    A = np.vstack(rows)
+    z = np.linalg.lstsq(A[:, :5], A[:, 5], rcond=None)[0]
+    th = np.arctan2(z[1], z[0])
+    c, s = np.cos(th), np.sin(th)
+    T = np.linalg.lstsq(A[:, 2:5], A[:, 5] - A[:, :2] @ [c, s], rcond=None)[0]
+    Xt = Pa @ (R_x @ np.array([[1, 0, 0], [0, c, -s], [0, s, c]])).T + T
+    return b * (np.linalg.norm(Xt, axis=1) * np.sign(Xt[:, 2]))[:, None]
+
+
+def test_rpnp_steps_match_the_plain_formulas():
+    """RPnP's regrouped polynomial, its root filter on Python floats and the linear step from
+    moments (T eliminated) compute what the notes' coefficients, np.roots and the explicit
+    2n x 5 least squares compute."""
+    from cutterpose.pnp import rpnp
+    from cutterpose.pnp.base import image_weights
+
+    tr = generate_trials(30, 2.0, seed=5)
+    cases = [(tr.points_holder_mm, tr.camera.normalize_px(px)) for px in tr.points_px]
+    rng = np.random.default_rng(5)
+    for P, R, t in _box_trials(rng, 10):
+        X = P @ R.T + t
+        cases.append((P, X[:, :2] / X[:, 2:] + rng.normal(0, 1e-3, (len(P), 2))))
+    n_multi = 0
+    for P, m in cases:
+        n = len(P)
+        b = np.column_stack([m, np.ones(n)])
+        b /= np.linalg.norm(b, axis=1)[:, None]
+        cos = b @ b.T
+        i1, i2 = divmod(int(np.argmin(cos)), n)
+        if tuple(m[i1]) > tuple(m[i2]):
+            i1, i2 = i2, i1
+        pair = rpnp._pair_model(P, i1, i2)
+        G = rpnp._cost_derivative(cos, pair, i1, i2)
+        G0 = _rpnp_plain_cost_derivative(P, cos, i1, i2)
+        np.testing.assert_allclose(G, G0, rtol=0, atol=1e-12 * np.abs(G0).max())
+        r = np.roots(G)
+        r = r.real[np.abs(r.imag) <= 1e-3 * np.abs(r.real).max()]
+        ts = rpnp._minima(G)
+        np.testing.assert_allclose(sorted(ts), np.sort(r[np.polyval(np.polyder(G), r) > 0]),
+                                   rtol=1e-9)
+        n_multi += len(ts) > 1
+        Nm, L = rpnp._eliminate_translation(pair.O, image_weights(m))
+        for t in ts:
+            X = rpnp._recover_one(t, float(cos[i1, i2]), b[i1].tolist(), b[i2].tolist(), b,
+                                  pair.Pa1, Nm, L)
+            X0 = _rpnp_plain_recover(t, b, m, pair.Pa1[:, :3], i1, i2)
+            np.testing.assert_allclose(X, X0, rtol=0, atol=1e-9 * np.abs(X0).max())
+    assert n_multi > 0  # the planar two-fold minima are among the cases
+
+
+def test_select_single_candidate_fast_path():
+    """One candidate takes a shortcut through select; the same candidate as lists takes the
+    general path: the same estimate, failures included."""
+    from cutterpose.pnp.base import select
+
+    tr = generate_trials(10, 1.0, seed=2)
+    P, f = tr.points_holder_mm, tr.camera.focal_px
+    for i in range(len(tr)):
+        m = tr.camera.normalize_px(tr.points_px[i])
+        R, t = tr.R_cam_holder[i], tr.t_cam_holder_mm[i]
+        for cand in [(R, t), (R, t * [1, 1, -1]), (1.01 * R, t), (R, t + [np.nan, 0, 0]),
+                     (R, t + [0, 0, np.inf]), (np.full((3, 3), np.inf), t)]:
+            with np.errstate(invalid="ignore"):  # the inf rotation
+                fast = select("x", [cand], P, m, f)
+                plain = select("x", [(cand[0].tolist(), cand[1].tolist())], P, m, f)
+            assert bool(fast) == bool(plain) and fast.reason == plain.reason
+            assert fast.info == plain.info and np.isnan(fast.ambiguity_ratio)
+            if plain:
+                np.testing.assert_array_equal(fast.R_cam_holder, plain.R_cam_holder)
+                np.testing.assert_array_equal(fast.t_cam_holder_mm, plain.t_cam_holder_mm)
+                assert fast.residual_px == pytest.approx(plain.residual_px, rel=1e-12)
+                assert len(fast.candidates) == 1
+                assert fast.R_cam_holder is not cand[0]  # the estimate owns its arrays
 
 
 def test_pinhole_normalize_px_matches_the_generic_formula(cam_syn):

@@ -36,7 +36,7 @@ from ..holder import Holder
 
 __all__ = ["model_points", "model_cache", "check_correspondences", "reprojection_rms", "select",
            "make_solver", "is_planar", "plane_frame", "align_rigid", "align_rigid_many",
-           "kron_normal", "smallest_eigvecs", "svd_small"]
+           "image_weights", "kron_normal", "smallest_eigvecs", "svd_small"]
 
 Candidate = tuple[np.ndarray, np.ndarray]
 
@@ -80,7 +80,8 @@ _MODEL_CACHE_SIZE = 64
 def as_points_px(points_px) -> np.ndarray:
     """``points_px`` as an (n, 2) float array of finite numbers, else :class:`InputError`."""
     x = _as_rows(points_px, 2, "points_px")
-    if not np.isfinite(x).all():
+    # a finite sum means finite entries (cheaper than the elementwise test, which runs otherwise)
+    if not math.isfinite(x.sum()) and not np.isfinite(x).all():
         raise InputError(f"points_px holds NaN or inf (at point "
                          f"{np.argwhere(~np.isfinite(x))[0, 0]})")
     return x
@@ -215,19 +216,27 @@ _BTB[3, 2, 2] = 1.0
 _BTB9 = _BTB.reshape(4, 9).T.copy()
 
 
-def kron_normal(O: np.ndarray, m: np.ndarray, coord_outer: bool) -> np.ndarray:
+def image_weights(m: np.ndarray) -> np.ndarray:
+    """(n, 4) weights ``(1, u, v, u^2 + v^2)`` of the points' ``B_i^T B_i`` (see ``_BTB``)."""
+    E = np.empty((len(m), 4))
+    E[:, 0] = 1.0
+    E[:, 1:3] = m
+    E[:, 3] = m[:, 0] * m[:, 0] + m[:, 1] * m[:, 1]
+    return E
+
+
+def kron_normal(O: np.ndarray, m: np.ndarray | None, coord_outer: bool,
+                E: np.ndarray | None = None) -> np.ndarray:
     """Normal matrix ``A^T A`` of the linear systems whose rows for point i are
     ``kron(B_i, a_i)`` (``coord_outer``, the DLT's layout) or ``kron(a_i, B_i)`` (EPnP's), with
     ``B_i`` as in ``_BTB`` and ``a_i`` a model vector of length d: ``A^T A = sum_i
     kron(B_i^T B_i, a_i a_i^T)``. ``O`` (n, d*d) holds the model's ``a_i a_i^T`` (cache it);
-    the image enters through 4 weights per point, so this is two small matrix products instead
-    of building the 2n-row system."""
+    the image enters through 4 weights per point (``E``, :func:`image_weights` of ``m`` unless
+    given), so this is two small matrix products instead of building the 2n-row system."""
     n, dd = O.shape
     d = int(round(dd**0.5))
-    E = np.empty((n, 4))
-    E[:, 0] = 1.0
-    E[:, 1:3] = m
-    E[:, 3] = m[:, 0] * m[:, 0] + m[:, 1] * m[:, 1]
+    if E is None:
+        E = image_weights(m)
     T = (_BTB9 @ (E.T @ O)).reshape(3, 3, d, d)  # [a, b, i, j]
     if coord_outer:
         return T.transpose(0, 2, 1, 3).reshape(3 * d, 3 * d)
@@ -269,9 +278,39 @@ def _dets(Rs: np.ndarray) -> np.ndarray:
     return np.array([a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g)])
 
 
+def _select_one(method: str, cand: Candidate, P: np.ndarray, m: np.ndarray,
+                f_px: float) -> PoseEstimate | None:
+    """:func:`select` of a single admissible candidate (the usual case) with a third of its
+    numpy calls; None when ``cand`` is not a finite (3, 3), (3,) float pair with all points in
+    front and a proper rotation, which the general path then handles (and reports)."""
+    R, t = cand
+    if not (type(R) is np.ndarray and type(t) is np.ndarray and R.shape == (3, 3)
+            and t.shape == (3,) and R.dtype == np.float64 and t.dtype == np.float64):
+        return None
+    (a, b, c), (d, e, f), (g, h, i) = R.tolist()
+    det = a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g)
+    # a finite determinant means a finite R (an inf or NaN entry makes it inf or NaN)
+    if not (abs(det - 1.0) <= 1e-6 and all(map(math.isfinite, t.tolist()))):
+        return None
+    X = P @ R.T + t
+    z = X[:, 2:]
+    if not z.min() > 0:
+        return None
+    r = X[:, :2] / z - m
+    err = math.sqrt(float((r * r).sum()) / len(r))  # RMS over the points
+    R, t = R.copy(), t.copy()  # as the general path: the estimate owns its arrays
+    return PoseEstimate(method=method, R_cam_holder=R, t_cam_holder_mm=t,
+                        residual_px=float(err * f_px), ambiguity_ratio=math.nan,
+                        candidates=[(R, t)], info={"n_candidates": 1})
+
+
 def select(method: str, cands: list[Candidate], P, m, f_px: float) -> PoseEstimate:
     """Pick the candidate with the least reprojection error; see the module docstring."""
     n_raw = len(cands)
+    if n_raw == 1:
+        est = _select_one(method, cands[0], P, m, f_px)
+        if est is not None:
+            return est
     if cands:
         try:  # one conversion for the stack (the usual case: all (3, 3) and (3,))
             Rs = np.array([R for R, _ in cands], dtype=float).reshape(n_raw, 3, 3)
@@ -321,7 +360,7 @@ def make_solver(method: str, candidates: Callable[[np.ndarray, np.ndarray], list
         P = model_points(model)
         x, P = check_correspondences(points_px, P, min_points)
         m = camera.normalize_px(x)
-        if not np.isfinite(m).all():
+        if not math.isfinite(m.sum()) and not np.isfinite(m).all():  # as in as_points_px
             raise InputError("points_px lie outside the camera's valid distortion domain")
         extra = {}
         try:

@@ -16,7 +16,8 @@
    ``x_c = normalise((c12 + t) b_i2 - b_i1)`` fixes ``R = R_x Rot_x(theta) R_o^T`` up to the
    angle ``theta`` about it; ``X_i = R_x Rot_x(theta) Pa_i + T`` and the collinearity equations
    ``u_i X_i3 - X_i1 = 0``, ``v_i X_i3 - X_i2 = 0`` are linear in ``(cos theta, sin theta, T)``
-   (least squares, 2n x 5).
+   (least squares, 2n x 5, solved through its normal equations: built from model-only moments
+   and four image weights per point, ``T`` eliminated once for all minima).
 6. **Final alignment**: ``theta = atan2(s, c)`` (``c^2 + s^2 = 1`` imposed), ``T`` refitted
    for that rotation, the camera-frame points moved onto their rays ``X_i = b_i ||Xt_i||`` and
    ``(R, t)`` from the rigid alignment of ``P`` to them (AL-ok,
@@ -53,20 +54,41 @@ Deviations from the reference code (notes sections 3 and 8):
 from __future__ import annotations
 
 import math
-from functools import cache
+from typing import NamedTuple
 
 import numpy as np
 from scipy.linalg.lapack import dgeev as _dgeev
 
-from .base import Candidate, align_rigid_many, make_solver, model_cache, svd_small
+from .base import (
+    Candidate,
+    align_rigid_many,
+    image_weights,
+    kron_normal,
+    make_solver,
+    model_cache,
+)
 
 __all__ = ["candidates", "solve"]
 
-_DER7 = np.arange(7.0, 0.0, -1.0)
-_POW6 = np.arange(6.0, -1.0, -1.0)
-_SUB7 = (np.arange(1, 7), np.arange(6))
 _COMPANION7 = np.zeros((7, 7))
-_COMPANION7[_SUB7] = 1.0  # the sub-diagonal of a degree-7 companion matrix
+_COMPANION7[np.arange(1, 7), np.arange(6)] = 1.0  # the sub-diagonal of a degree-7 companion
+_EYE9 = np.eye(9)
+_ONES3 = np.ones(3)
+
+
+# The quartic of step 3 regrouped: f = p^2 - q r^2 with p = A6 t^2 + A3 t + A7, q = A1 t^2 + A2
+# and r = c2i t + A4 (the A's of the notes, section 3 step 4). With the rows
+# Z = (A1, A2, c2i, A4, A6, A3, A7, A1 c2i, A1 A4, A2 c2i, A2 A4) = (q, r, p, q r), the
+# coefficients (t^4 .. t^0) of f are _QUARTIC @ vec(Z[4:] Z[2:7]^T), the products of
+# (p, q r) with (r, p): p p - (q r) r. One broadcast product and one matrix product instead of
+# the two dozen array operations of the coefficients written out.
+_DEG_LEFT = (2, 1, 0, 3, 2, 1, 0)  # degrees in t of the coefficients in Z[4:]
+_DEG_RIGHT = (1, 0, 2, 1, 0)  # and in Z[2:7]
+_QUARTIC = np.zeros((5, 7, 5))
+for _a, _b in np.ndindex(7, 5):
+    if (_a < 3) == (_b >= 2):  # p times p, or q r times r
+        _QUARTIC[4 - _DEG_LEFT[_a] - _DEG_RIGHT[_b], _a, _b] = 1.0 if _a < 3 else -1.0
+_QUARTIC = _QUARTIC.reshape(5, 35)
 
 
 def _frame_rows(x) -> list[list[float]]:
@@ -90,7 +112,6 @@ def _complete_frame(x: np.ndarray) -> np.ndarray:
     return np.array(_frame_rows(x.tolist()))
 
 
-@cache
 def _fdf_map() -> np.ndarray:
     """(8, 25): ``G = _fdf_map() @ vec(g g^T)`` for ``G = f f'`` summed over the points, with
     ``f = sum_a g_a t^(4-a)``: the coefficient of ``t^(7-k)`` is ``sum_(a+b=k) (4-b) g_a g_b``."""
@@ -101,55 +122,75 @@ def _fdf_map() -> np.ndarray:
     return M.reshape(8, 25)
 
 
-def _pair_model(P: np.ndarray, i1: int, i2: int):
-    """What depends on the model and the axis pair only (cached per model and pair: the
-    holder's longest projection comes from a few pairs): the other points' mask, the squared
-    distances ``D12^2``, ``D1i^2``, ``D2i^2``, and the local frame ``R_o`` with ``Pa``."""
+_FDF = _fdf_map()
+
+
+class _Pair(NamedTuple):
+    """What depends on the model and the axis pair only (see :func:`_pair_model`)."""
+
+    cos_idx: np.ndarray  # (2, n - 2) flat indices of b_i1 . b_i, b_i2 . b_i (i not i1, i2)
+    basis: np.ndarray  # (7, n - 2) template of the rows 1, c1i, c2i, c1i^2, c1i c2i, A1, A6
+    Pa1: np.ndarray | None  # (n, 4) rows a_i = (Pa_i, 1), Pa_i = R_o^T (P_i - p0); None when
+    #                         i1, i2 coincide
+    O: np.ndarray | None  # (n, 16) vec(a_i a_i^T): the linear step's moments
+
+
+def _pair_model(P: np.ndarray, i1: int, i2: int) -> _Pair:
+    """:class:`_Pair` of a model and an axis pair, cached per model and pair (the holder's
+    longest projection comes from a few pairs)."""
     cache = model_cache(P).setdefault("rpnp", {})
     pm = cache.get((i1, i2))
     if pm is None:
-        rest = np.ones(len(P), dtype=bool)
-        rest[[i1, i2]] = False
+        n = len(P)
+        rest = np.flatnonzero((np.arange(n) != i1) & (np.arange(n) != i2))
         Pr = P[rest]
         D12_2 = float(np.sum((P[i1] - P[i2]) ** 2))
         D1i_2 = np.sum((Pr - P[i1]) ** 2, axis=1)
         D2i_2 = np.sum((Pr - P[i2]) ** 2, axis=1)
         edge = P[i2] - P[i1]
+        Pa1 = O = None
         if np.any(edge):
             p0 = 0.5 * (P[i1] + P[i2])
             R_o = _complete_frame(edge / np.linalg.norm(edge))
-            Pa = (P - p0) @ R_o
-        else:
-            Pa = None
+            Pa1 = np.column_stack([(P - p0) @ R_o, np.ones(n)])
+            O = (Pa1[:, :, None] * Pa1[:, None, :]).reshape(n, 16)
         # the distance terms of the quartics (A1, A6 of the notes) are model-only too
         A1 = D1i_2 / D12_2
         A6 = (D2i_2 - D12_2 - D1i_2) / (2.0 * D12_2)
-        pm = cache[(i1, i2)] = (rest, D12_2, D1i_2, D2i_2, Pa, A1, A6, A6 * A6)
+        basis = np.zeros((7, n - 2))
+        basis[0], basis[5], basis[6] = 1.0, A1, A6
+        pm = cache[(i1, i2)] = _Pair(np.array([i1 * n + rest, i2 * n + rest]), basis, Pa1, O)
+        for a in pm:  # shared by every solve with this model: read-only
+            if a is not None:
+                a.flags.writeable = False
     return pm
 
 
-def _cost_derivative(b: np.ndarray, P: np.ndarray, i1: int, i2: int) -> np.ndarray:
-    """Coefficients (t^7 .. t^0) of ``G(t) = sum_i f_i(t) f_i'(t)`` (paper eq. 8)."""
-    rest, _, _, _, _, A1, A6, A6_2 = _pair_model(P, i1, i2)
-    c12 = float(b[i1] @ b[i2])
-    c1i, c2i = (b[[i1, i2]] @ b[rest].T)  # one product for both cosines
+def _cost_derivative(cosines: np.ndarray, pair: _Pair, i1: int, i2: int) -> np.ndarray:
+    """Coefficients (t^7 .. t^0) of ``G(t) = sum_i f_i(t) f_i'(t)`` (paper eq. 8), from the
+    cosines ``b_i . b_j`` of the bearings."""
+    c12 = float(cosines[i1, i2])
     s12_2 = 1.0 - c12 * c12
-    c1i_2 = c1i * c1i
-    c2i_2 = c2i * c2i
-    A2 = A1 * s12_2 - (1.0 - c1i_2)
-    A3 = c1i * c2i - c12
-    A4 = c12 * c2i - c1i
-    A7 = s12_2 - c1i_2 + c12 * c1i * c2i + A6 * s12_2
-    A1A4 = A1 * A4
-    A2A4 = A2 * A4
-    g = np.empty((5, len(c1i)))
-    g[0] = A6_2 - A1 * c2i_2
-    g[1] = 2.0 * (A3 * A6 - A1A4 * c2i)
-    g[2] = A3 * A3 + 2.0 * A6 * A7 - A1A4 * A4 - A2 * c2i_2
-    g[3] = 2.0 * (A3 * A7 - A2A4 * c2i)
-    g[4] = A7 * A7 - A2A4 * A4
+    B = pair.basis.copy()
+    B[1:3] = cosines.take(pair.cos_idx)  # c1i, c2i
+    np.multiply(B[1:3], B[1], out=B[3:5])  # c1i^2, c1i c2i
+    # the rows q, r, p of Z (see _QUARTIC) are linear in the basis rows (the columns of C: 1,
+    # c1i, c2i, c1i^2, c1i c2i, A1, A6), with coefficients from c12: A2 = A1 s12^2 - 1 + c1i^2,
+    # A4 = c12 c2i - c1i, A3 = c1i c2i - c12, A7 = (1 + A6) s12^2 - c1i^2 + c12 c1i c2i
+    C = np.array([0.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0,  # A1
+                  -1.0, 0.0, 0.0, 1.0, 0.0, s12_2, 0.0,  # A2
+                  0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0,  # c2i
+                  0.0, -1.0, c12, 0.0, 0.0, 0.0, 0.0,  # A4
+                  0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0,  # A6
+                  -c12, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0,  # A3
+                  s12_2, 0.0, 0.0, -1.0, c12, 0.0, s12_2]).reshape(7, 7)  # A7
+    k = B.shape[1]
+    Z = np.empty((11, k))
+    np.matmul(C, B, out=Z[:7])
+    np.multiply(Z[:2, None], Z[2:4], out=Z[7:].reshape(2, 2, k))  # q r
+    g = _QUARTIC @ (Z[4:, None] * Z[2:7]).reshape(35, k)
     # sum_i f_i f_i' from the 5x5 Gram matrix of the quartics' coefficients
-    return _fdf_map() @ (g @ g.T).ravel()
+    return _FDF @ (g @ g.T).ravel()
 
 
 def _roots(p: np.ndarray) -> np.ndarray:
@@ -175,166 +216,145 @@ def _roots(p: np.ndarray) -> np.ndarray:
     return roots
 
 
-def _minima(G: np.ndarray) -> np.ndarray:
-    """Real roots of G with G' > 0 (local minima of F)."""
-    gmax = float(np.abs(G).max())
-    if not 0.0 < gmax < math.inf:  # all zero, or not finite (NaN fails every comparison)
-        return np.empty(0)
-    G = G / gmax
-    if G[0] != 0.0 and G[-1] != 0.0:
+def _minima(G: np.ndarray) -> list[float]:
+    """Real roots of G with G' > 0 (local minima of F), in the order LAPACK returns them.
+
+    The seven roots and their filter are few enough for Python floats (cheaper than numpy calls
+    at this size). The tests are those of the array formulation, ``t = wr[|wi| <= 1e-3
+    max|wr|]`` and ``polyval(polyder(G), t) > 0`` (here by Horner), which still handles
+    non-finite roots, where numpy's NaN/inf rules decide."""
+    g = G.tolist()
+    if not all(map(math.isfinite, g)):
+        return []
+    gmax = max(map(abs, g))
+    if gmax == 0.0:
+        return []
+    g = [v / gmax for v in g]
+    if g[0] != 0.0 and g[-1] != 0.0:
         # np.roots without its overhead: eigenvalues of the companion matrix by dgeev (the
         # routine behind np.linalg.eigvals), kept as real and imaginary parts
         A = _COMPANION7.copy()
-        A[0] = -G[1:] / G[0]
+        A[0] = [-v / g[0] for v in g[1:]]
         wr, wi, _, _, info = _dgeev(A, compute_vl=0, compute_vr=0)
         if info != 0:
             r = np.linalg.eigvals(A)
             wr, wi = r.real, r.imag
     else:
-        roots = _roots(G)
+        roots = _roots(np.array(g))
         if roots.size == 0:
-            return np.empty(0)
+            return []
         wr, wi = roots.real, roots.imag
-    tol = 1e-3 * np.abs(wr).max()
-    t = wr[np.abs(wi) <= tol]
-    dG = (t[:, None] ** _POW6) @ (G[:-1] * _DER7)  # np.polyval(np.polyder(G), t)
-    return t[dG > 0]
+    wr_l = wr.tolist()
+    if not all(map(math.isfinite, wr_l)):  # only from an overflowing companion row
+        t = wr[np.abs(wi) <= 1e-3 * np.abs(wr).max()]
+        dG = (t[:, None] ** np.arange(6.0, -1.0, -1.0)) @ (np.array(g[:-1]) * np.arange(7, 0, -1))
+        return t[dG > 0].tolist()
+    tol = 1e-3 * max(map(abs, wr_l))
+    dg = [(7 - k) * gk for k, gk in enumerate(g[:-1])]  # G' (t^6 .. t^0)
+    out = []
+    for t, ti in zip(wr_l, wi.tolist()):
+        if abs(ti) <= tol:
+            d = 0.0
+            for c in dg:  # Horner
+                d = d * t + c
+            if d > 0:
+                out.append(t)
+    return out
 
 
-def _inv_sym3(A: np.ndarray) -> np.ndarray:
-    """Inverse of a symmetric positive definite 3x3 matrix by cofactors (np.linalg.inv's
-    per-call overhead is most of its cost at this size)."""
-    (a, b, c), (_, d, e), (_, _, f) = A.tolist()
+def _eliminate_translation(O: np.ndarray, E: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The collinearity equations of step 5 with ``T`` eliminated, the same for every root.
+
+    Written for any 3x3 ``M`` in place of ``R_x Rot_x(theta)``, the camera-frame points are
+    ``X_i = M Pa_i + T`` and the rows ``u X3 - X1``, ``v X3 - X2`` of point i are
+    ``kron(a_i, B_i) (vec M, T)`` with ``a_i = (Pa_i, 1)`` and ``B_i = [[-1, 0, u], [0, -1,
+    v]]``: their 12x12 normal matrix comes from the model's moments ``O`` with the image weights
+    ``E`` (:func:`~cutterpose.pnp.base.kron_normal`) instead of from the 2n rows.
+
+    Returns
+    -------
+    Nm : (9, 9) normal matrix in ``vec M`` (columns stacked) once ``T`` is eliminated (the Schur
+        complement of the ``T`` block).
+    L : (12, 9) ``(vec M, T) = L vec M``, with ``T`` the least-squares translation for ``M``.
+    """
+    N = kron_normal(O, None, coord_outer=False, E=E)  # B_i^T B_i is the same for -B_i
+    # minus the inverse of the T block (symmetric positive definite, 3x3) by cofactors:
+    # np.linalg.inv's per-call overhead is most of its cost at this size
+    (a, b, c), (_, d, e), (_, _, f) = N[9:, 9:].tolist()
     c00, c01, c02 = d * f - e * e, c * e - b * f, b * e - c * d
     c11, c12, c22 = a * f - c * c, b * c - a * e, a * d - b * b
-    det = a * c00 + b * c01 + c * c02
-    return np.array([[c00, c01, c02], [c01, c11, c12], [c02, c12, c22]]) / det
+    det = -(a * c00 + b * c01 + c * c02)
+    L = np.empty((12, 9))
+    L[:9] = _EYE9
+    np.matmul(np.array([[c00 / det, c01 / det, c02 / det], [c01 / det, c11 / det, c12 / det],
+                        [c02 / det, c12 / det, c22 / det]]), N[9:, :9], out=L[9:])
+    return N[:9] @ L, L  # N_mm + N_mt K, N being symmetric
 
 
-def _recover_one(t: float, b: np.ndarray, m: np.ndarray, Pa: np.ndarray, i1: int,
-                 i2: int) -> np.ndarray | None:
-    """Camera-frame points for one root ``t`` (step 6 of the notes), as in :func:`candidates`'
-    batched path: ``X_i = R_x Rot_x(theta) Pa_i + T`` with ``(cos, sin, T)`` from the linear
-    least squares of ``u X3 - X1 = 0``, ``v X3 - X2 = 0``, ``theta`` from the direction of
-    ``(cos, sin)``, ``T`` re-solved for that exact rotation, then each point moved onto its ray
-    keeping its range. Returns (n, 3), or None for a degenerate axis."""
-    c12 = float(b[i1] @ b[i2])
-    ax = ((c12 + t) * b[i2] - b[i1]).tolist()
+def _recover_one(t: float, c12: float, bi1: list[float], bi2: list[float], b: np.ndarray,
+                 Pa1: np.ndarray, Nm: np.ndarray, L: np.ndarray) -> np.ndarray | None:
+    """Camera-frame points for one root ``t`` (steps 5 and 6): ``X_i = R_x Rot_x(theta) Pa_i +
+    T`` with ``(cos, sin, T)`` from the linear least squares of ``u X3 - X1 = 0``, ``v X3 - X2 =
+    0``, ``theta`` from the direction of ``(cos, sin)``, ``T`` re-solved for that exact
+    rotation, then each point moved onto its ray keeping its range. ``bi1``, ``bi2`` are the
+    bearings of ``i1``, ``i2``, ``Pa1`` the rows ``(Pa_i, 1)``; ``Nm``, ``L`` from
+    :func:`_eliminate_translation`. Returns (n, 3), or None for a degenerate axis."""
+    ax = [(c12 + t) * y - x for x, y in zip(bi1, bi2)]
     nrm = math.sqrt(ax[0] * ax[0] + ax[1] * ax[1] + ax[2] * ax[2])
     if nrm == 0.0:
         return None
     (a1, a2, a3), (b1, b2, b3), (d1, d2, d3) = _frame_rows([ax[0] / nrm, ax[1] / nrm,
                                                              ax[2] / nrm])
-    # columns r1 = (a1, b1, d1), r2 = (a2, b2, d2), r3 = (a3, b3, d3) of R_x
-    u, v = m[:, 0], m[:, 1]
-    px, py, pz = Pa[:, 0], Pa[:, 1], Pa[:, 2]
-    # x rows: (u r_z - r_x) . term, y rows: (v r_z - r_y) . term, for the three terms
-    e1x, e2x, e3x = u * d1 - a1, u * d2 - a2, u * d3 - a3
-    e1y, e2y, e3y = v * d1 - b1, v * d2 - b2, v * d3 - b3
-    n = len(m)
-    M = np.empty((2 * n, 5))
-    M[:n, 0] = e2x * py + e3x * pz
-    M[n:, 0] = e2y * py + e3y * pz
-    M[:n, 1] = e3x * py - e2x * pz
-    M[n:, 1] = e3y * py - e2y * pz
-    M[:n, 2:] = (-1.0, 0.0, 0.0)
-    M[n:, 2:] = (0.0, -1.0, 0.0)
-    M[:n, 4] = u
-    M[n:, 4] = v
-    r = np.concatenate([-e1x * px, -e1y * px])
-    N = M.T @ M
-    g = M.T @ r
-    # (c, s) through the Schur complement of the T block (what the batched path's projection
-    # computes); only its direction is used
-    NT_inv = _inv_sym3(N[2:, 2:])
-    S = N[:2, :2] - N[:2, 2:] @ NT_inv @ N[2:, :2]
-    h = g[:2] - N[:2, 2:] @ (NT_inv @ g[2:])
-    c_ = S[1, 1] * h[0] - S[0, 1] * h[1]
-    s_ = S[0, 0] * h[1] - S[0, 1] * h[0]
+    # columns r1 = (a1, b1, d1), r2 = (a2, b2, d2), r3 = (a3, b3, d3) of R_x: M = R_x Rot_x
+    # has columns (r1, c r2 + s r3, c r3 - s r2), so vec M = W (1, c, s)
+    W = np.array([a1, 0.0, 0.0, b1, 0.0, 0.0, d1, 0.0, 0.0,
+                  0.0, a2, a3, 0.0, b2, b3, 0.0, d2, d3,
+                  0.0, a3, -a2, 0.0, b3, -b2, 0.0, d3, -d2]).reshape(9, 3)
+    # the cost in (1, c, s) with T eliminated; (c, s) = S^-1 h with S = N[1:, 1:], h = -N[1:, 0],
+    # up to the positive factor det S: only its direction is used
+    (_, n01, n02), (_, n11, n12), (_, _, n22) = (W.T @ Nm @ W).tolist()
+    c_ = n12 * n02 - n22 * n01
+    s_ = n12 * n01 - n11 * n02
     th = math.atan2(s_, c_)
     c, sn = math.cos(th), math.sin(th)
-    T = NT_inv @ (g[2:] - N[2:, :2] @ (c, sn))
-    R_t = np.array([[a1, c * a2 + sn * a3, c * a3 - sn * a2],
-                    [b1, c * b2 + sn * b3, c * b3 - sn * b2],
-                    [d1, c * d2 + sn * d3, c * d3 - sn * d2]])
-    Xt = Pa @ R_t.T + T
-    rng = np.sqrt(np.einsum("ij,ij->i", Xt, Xt)) * np.sign(Xt[:, 2])
+    # T for that exact rotation: (R_t^T; T^T) = L vec R_t, and vec R_t lists the columns of R_t
+    RT = L @ np.array([a1, b1, d1, c * a2 + sn * a3, c * b2 + sn * b3, c * d2 + sn * d3,
+                       c * a3 - sn * a2, c * b3 - sn * b2, c * d3 - sn * d2])
+    Xt = Pa1 @ RT.reshape(4, 3)
+    rng = np.sqrt((Xt * Xt) @ _ONES3) * np.sign(Xt[:, 2])
     return b * rng[:, None]
 
 
 def candidates(P: np.ndarray, m: np.ndarray) -> list[Candidate]:
     """RPnP poses, one per local minimum of the triplet cost; see the module docstring."""
     n = len(P)
+    E = image_weights(m)  # (1, u, v, u^2 + v^2): for the linear step, and the bearings' norms
     b = np.empty((n, 3))
     b[:, :2] = m
     b[:, 2] = 1.0
-    b /= np.sqrt(np.einsum("ij,ij->i", b, b))[:, None]
+    b /= np.sqrt(E[:, 3] + 1.0)[:, None]
     # longest projection: least cosine between two rays, exhaustively
     cosines = b @ b.T
-    i1, i2 = divmod(int(np.argmin(cosines)), n)
+    i1, i2 = divmod(int(cosines.argmin()), n)
     # order the pair by the image, not by the input order, so that permuting the points does not
     # change the result (the cost is not symmetric in i1, i2 under noise)
     if (m[i1, 0], m[i1, 1]) > (m[i2, 0], m[i2, 1]):
         i1, i2 = i2, i1
-    Pa = _pair_model(P, i1, i2)[4]
-    if Pa is None:  # the two points coincide
+    pair = _pair_model(P, i1, i2)
+    if pair.Pa1 is None:  # the two points coincide
         return []
 
-    ts = _minima(_cost_derivative(b, P, i1, i2))
-    if ts.size == 0:
+    ts = _minima(_cost_derivative(cosines, pair, i1, i2))
+    if not ts:
         return []
-    if ts.size == 1:  # the usual case: the same least squares with a third of the numpy calls
-        X = _recover_one(float(ts[0]), b, m, Pa, i1, i2)
-        return [] if X is None else align_rigid_many(P, X[None])
-    # the rotation axis in the camera frame, one per minimum
-    c12 = b[i1] @ b[i2]
-    axes = (c12 + ts)[:, None] * b[i2] - b[i1]
-    norms = np.linalg.norm(axes, axis=1)
-    if not norms.all():
-        axes, norms = axes[norms != 0], norms[norms != 0]
-        if not len(axes):
-            return []
-    R_x = np.array([_frame_rows(a) for a in (axes / norms[:, None]).tolist()])  # (k, 3, 3)
-    k = len(R_x)
-    r1, r2, r3 = R_x[:, :, 0], R_x[:, :, 1], R_x[:, :, 2]
-    # X_i = r1 Pa_x + c (r2 Pa_y + r3 Pa_z) + s (r3 Pa_y - r2 Pa_z) + T: the three terms
-    # (F0, Fc, Fs) for every root at once, F = Pa @ Mk (k, n, 3 terms x 3 coordinates)
-    Mk = np.zeros((k, 3, 3, 3))
-    Mk[:, 0, 0] = r1
-    Mk[:, 1, 1] = r2
-    Mk[:, 2, 1] = r3
-    Mk[:, 1, 2] = r3
-    Mk[:, 2, 2] = -r2
-    F = (Pa @ Mk.reshape(k, 3, 9)).reshape(k, n, 3, 3)
-    # the collinearity rows (u X3 - X1, v X3 - X2, interleaved per point as before) of each term
-    Aterm = (F[..., :2] - F[..., 2:] * m[:, None, :]).transpose(0, 1, 3, 2).reshape(k, 2 * n, 3)
-    # the T columns B = [[1, 0, -u], [0, 1, -v]] per point are the same for every root: the
-    # least squares in (c, s, T) is the one in (c, s) with range(B) projected out (exactly what
-    # lstsq of the 2n x 5 system solves), then T from B's pseudo-inverse
-    B = np.zeros((n, 2, 3))
-    B[:, 0, 0] = B[:, 1, 1] = 1.0
-    B[:, :, 2] = -m
-    Ub, sb, Vbt = svd_small(B.reshape(2 * n, 3), full_matrices=False)
-    At = Aterm - Ub @ (Ub.T @ Aterm)
-    Acs, rhs = At[:, :, 1:], -At[:, :, 0]
-    N = Acs.transpose(0, 2, 1) @ Acs  # (k, 2, 2)
-    g = (Acs.transpose(0, 2, 1) @ rhs[:, :, None])[..., 0]
-    # (c, s) = N^-1 g up to the positive factor det N: only its direction is used
-    c_ = N[:, 1, 1] * g[:, 0] - N[:, 0, 1] * g[:, 1]
-    s_ = N[:, 0, 0] * g[:, 1] - N[:, 0, 1] * g[:, 0]
-    theta = np.arctan2(s_, c_)
-    c, s = np.cos(theta)[:, None], np.sin(theta)[:, None]
-    R_t = np.empty((k, 3, 3))
-    R_t[:, :, 0] = r1
-    R_t[:, :, 1] = c * r2 + s * r3
-    R_t[:, :, 2] = c * r3 - s * r2
-    # T for the exact rotation: the same equations with (c, s) fixed
-    Y = Pa @ R_t.transpose(0, 2, 1)  # (k, n, 3)
-    rhs2 = -(Y[..., :2] - Y[..., 2:] * m).reshape(k, 2 * n)
-    T = ((rhs2 @ Ub) / sb) @ Vbt
-    Xt = Y + T[:, None, :]
-    X = b * (np.sqrt(np.sum(Xt * Xt, axis=2, keepdims=True)) * np.sign(Xt[..., 2:3]))
-    return align_rigid_many(P, X)
+    Nm, L = _eliminate_translation(pair.O, E)
+    c12 = float(cosines[i1, i2])
+    bi1, bi2 = b[i1].tolist(), b[i2].tolist()
+    Xs = [X for X in (_recover_one(t, c12, bi1, bi2, b, pair.Pa1, Nm, L) for t in ts)
+          if X is not None]
+    if not Xs:
+        return []
+    return align_rigid_many(P, Xs[0][None] if len(Xs) == 1 else np.array(Xs))
 
 
 solve = make_solver("rpnp", candidates, min_points=4)
