@@ -521,3 +521,55 @@ def test_epnp_gate_and_second_solution(monkeypatch):
         epnp.candidates(tr5.points_holder_mm, tr5.camera.normalize_px(tr5.points_px[i]),
                         f_px=tr5.camera.focal_px)
     assert len(calls) >= 10
+
+
+def test_epnp_steps_match_the_plain_formulas():
+    """EPnP's normal matrix gathered from ``E^T O`` is kron_normal's bit for bit; the hypothesis
+    scores from one stacked product, the pose from the control points alone and the planar
+    Newton's quadratic-convergence stop give what the plain formulas on the points give."""
+    from cutterpose.pnp import epnp
+    from cutterpose.pnp.base import align_rigid, kron_normal
+
+    tr = generate_trials(20, 2.0, seed=7)
+    cases = [(tr.points_holder_mm, tr.camera.normalize_px(px)) for px in tr.points_px]
+    rng = np.random.default_rng(7)
+    for P, R, t in _box_trials(rng, 10, n_points=12):
+        X = P @ R.T + t
+        cases.append((P, X[:, :2] / X[:, 2:] + rng.normal(0, 1e-3, (len(P), 2))))
+    for P, m in cases:
+        md = epnp._model(P)
+        n, kp = len(P), md.k + 1
+        N = epnp._normal_matrix(md.O, md.ones, m, kp)
+        N0 = kron_normal(md.O, m, coord_outer=False)
+        assert N.tobytes() == N0.tobytes()  # signed zeros included: LAPACK sees the same matrix
+        Wf = epnp._kernel(md.O, md.ones, m, kp).T
+        alphas = md.A3[:n]
+        hyps = [list(rng.normal(size=kp)) for _ in range(3)]
+        e, sc, zbar = epnp._score(hyps, Wf, md, m)
+        for h, beta in enumerate(hyps):
+            c = (np.array(beta) @ Wf).reshape(kp, 3)
+            X = alphas @ c
+            e0 = np.mean(np.linalg.norm(X[:, :2] / X[:, 2:] - m, axis=1))
+            dc = np.linalg.norm(X - X.mean(0), axis=1)
+            sc0 = dc @ np.linalg.norm(P - P.mean(0), axis=1) / (dc @ dc)
+            np.testing.assert_allclose([e[h], sc[h], zbar[h]], [e0, sc0, X[:, 2].mean()],
+                                       rtol=1e-12, atol=1e-14 * abs(X[:, 2]).max())
+            R, t = epnp._align_control(md.SaXt @ c, md.Pbar)
+            R0, t0 = align_rigid(P, X)
+            np.testing.assert_allclose(R, R0, atol=1e-12)
+            np.testing.assert_allclose(t, t0, atol=1e-12 * np.abs(t0).max())
+        if md.planar:  # Newton from the N = 2 hypothesis, against 8 plain iterations
+            D = md.Dm3 @ Wf.T
+            dl = (D.transpose(0, 2, 1) @ D).tolist()
+            beta = epnp._hypotheses_low(dl, md.rhol, kp)[1]
+            G = [(d[0][0], d[0][1], d[0][2], d[1][1], d[1][2], d[2][2]) for d in dl]
+            b, conv = epnp._newton_planar(beta, G, md.rhol)
+            b0 = np.array(beta)
+            Gm = [np.array([[g[0], g[1], g[2]], [g[1], g[3], g[4]], [g[2], g[4], g[5]]])
+                  for g in G]
+            for _ in range(8):
+                J = 2.0 * np.array([Gp @ b0 for Gp in Gm])
+                r = np.array(md.rhol) - [b0 @ Gp @ b0 for Gp in Gm]
+                b0 = b0 + np.linalg.solve(J, r)
+            assert conv
+            np.testing.assert_allclose(b, b0, rtol=0, atol=1e-13 * np.linalg.norm(b0))

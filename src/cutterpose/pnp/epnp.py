@@ -39,7 +39,8 @@ floats). The sign of ``beta`` is fixed by the orientation of the control points 
 set (``det [c_1 - c_0, c_2 - c_0, c_3 - c_0]`` has the sign of the world's, which keeps a
 mirrored structure out) and by positive mean depth for a planar set.
 The pose is the rigid alignment (:func:`~cutterpose.pnp.base.align_rigid`, AL-ok) of ``P`` to the
-camera-frame points ``X_i = sum_j alpha_ij c_j``.
+camera-frame points ``X_i = sum_j alpha_ij c_j``, whose centroid and cross-covariance with ``P``
+are linear in the control points (model-only factors), so X itself is never formed.
 
 Convention:
     ``P`` (n, 3) object points in mm, ``m`` (n, 2) normalised image coordinates; control points
@@ -60,11 +61,12 @@ Deviations from the reference code (notes sections 2 and 8):
     * Hypotheses are scored by ``E_mean`` of the camera-frame points ``X_i = sum_j alpha_ij c_j``
       themselves (the reference scores the aligned pose): no alignment per hypothesis.
     * Gauss-Newton on the planar betas too (notes 2.3), up to 8 iterations (fewer once the step
-      is at rounding level). A best hypothesis whose GN has not converged (last step above
-      1e-7 relative) is returned unrefined (the reference keeps the refined result only when its
-      ``E_mean`` is smaller). On the holder, refining only the best gives the same poses as
-      the earlier refine-every-hypothesis code in all 4000 trials of a 0.5 to 5 px sweep (to
-      1e-9 deg, the CSV's precision).
+      is at rounding level, or, for the planar Newton, once it converges quadratically with a
+      step of 1e-8 relative, the next one being at rounding level). A best hypothesis whose GN
+      has not converged (last step above 1e-7 relative) is returned unrefined (the reference
+      keeps the refined result only when its ``E_mean`` is smaller). On the holder, refining
+      only the best gives the same poses as the earlier refine-every-hypothesis code in all 4000
+      trials of a 0.5 to 5 px sweep (to 1e-9 deg, the CSV's precision).
     * A second candidate, for the ambiguity ratio of :func:`~cutterpose.pnp.base.select`, only
       when it is a *different solution* of the distance equations: the next hypothesis by
       ``E_mean`` that does not start within 1 % of the refined best (``beta`` up to its sign),
@@ -82,6 +84,7 @@ from __future__ import annotations
 
 import math
 from functools import cache, lru_cache, partial
+from typing import NamedTuple
 
 import numpy as np
 from scipy.linalg.lapack import dgeev as _dgeev
@@ -90,7 +93,6 @@ from scipy.linalg.lapack import dgesv as _dgesv
 from ..errors import DegenerateInputError
 from .base import (
     Candidate,
-    align_rigid_many,
     is_planar,
     kron_normal,
     make_solver,
@@ -138,18 +140,46 @@ def _control_points(P: np.ndarray, planar: bool):
     return alphas, C, k, float(np.sign(np.linalg.det(Vt)))
 
 
-def _kernel(alphas: np.ndarray, m: np.ndarray, n_vec: int, O: np.ndarray | None = None
-            ) -> np.ndarray:
-    """The ``n_vec`` eigenvectors of ``M^T M`` with the least eigenvalues, as (N, k+1, 3).
+@cache
+def _normal_gather(kp: int) -> tuple[np.ndarray, np.ndarray]:
+    """Flat index into ``F = E^T O`` (4, kp^2) and sign of every entry (3 kp, 3 kp) of
+    ``kron_normal(O, m, coord_outer=False)``, whose entries are each one entry of F times the
+    +-1 of one coefficient matrix of ``B_i^T B_i``, or zero (see :func:`_normal_matrix`)."""
+    # the coefficient matrices: kron_normal of a 1x1 model with unit image weights
+    B = np.array([kron_normal(np.ones((1, 1)), None, coord_outer=False, E=e[None])
+                  for e in np.eye(4)])  # (4, 3, 3), at most one nonzero per (a, b)
+    coef, sab = np.argmax(B != 0, axis=0), B.sum(axis=0)  # which one, and its +-1 (or 0)
+    i, a, j, b = np.indices((kp, 3, kp, 3))
+    # zero entries: index 0, F[0, 0] = sum_i alpha_i0^2 >= 0, so 0 * F[0, 0] is +0 as in
+    # kron_normal
+    idx = np.where(sab[a, b] != 0, coef[a, b] * kp * kp + i * kp + j, 0)
+    return idx.reshape(3 * kp, 3 * kp), sab[a, b].reshape(3 * kp, 3 * kp)
 
-    ``M^T M = sum_i kron(alpha_i alpha_i^T, B_i^T B_i)`` is built from its structure
-    (:func:`~cutterpose.pnp.base.kron_normal`; ``O`` the cached ``alpha_i alpha_i^T``) rather than
-    from the 2n rows of ``M``: the same matrix, fewer operations."""
-    kp = alphas.shape[1]
-    if O is None:
-        O = (alphas[:, :, None] * alphas[:, None, :]).reshape(len(alphas), -1)
-    V = smallest_eigvecs(kron_normal(O, m, coord_outer=False), n_vec)
-    return V.T.reshape(n_vec, kp, 3)
+
+_SUM2 = np.ones((2, 1))
+_ONES3 = np.ones(3)
+
+
+def _normal_matrix(O: np.ndarray, ones: np.ndarray, m: np.ndarray, kp: int) -> np.ndarray:
+    """``M^T M`` of EPnP's system (paper eq. 7), bit for bit
+    ``kron_normal(O, m, coord_outer=False)``, in fewer numpy calls.
+
+    ``M^T M = sum_i kron(alpha_i alpha_i^T, B_i^T B_i)`` with ``B_i^T B_i`` linear in the image
+    weights ``E_i = (1, u_i, v_i, u_i^2 + v_i^2)``; each entry is one entry of ``F = E^T O``
+    (``O`` the cached ``alpha_i alpha_i^T``) times 1, -1 or 0, so it is gathered from F rather
+    than mapped by a matrix product and two reshapes. ``ones`` is a cached (n, 1) column; the
+    sum ``u^2 + v^2`` as a product with ``(1, 1)`` rounds as the plain sum (exact factors).
+    ``kp = k + 1`` control points."""
+    E = np.concatenate((ones, m, (m * m) @ _SUM2), axis=1)
+    idx, sgn = _normal_gather(kp)
+    return (E.T @ O).take(idx) * sgn
+
+
+def _kernel(O: np.ndarray, ones: np.ndarray, m: np.ndarray, kp: int) -> np.ndarray:
+    """The ``N = kp`` eigenvectors of ``M^T M`` (:func:`_normal_matrix`) with the least
+    eigenvalues, as the columns of a (3 kp, N) array: column k holds the control points of
+    ``w_k``, ``(kp, 3)`` flattened."""
+    return smallest_eigvecs(_normal_matrix(O, ones, m, kp), kp)
 
 
 def _beta_from_products(Bmat: np.ndarray) -> np.ndarray:
@@ -409,35 +439,46 @@ def _newton_planar(beta: list, G: list, rho: list):
     floats. ``G[p]`` is ``(g00, g01, g02, g11, g12, g22)`` of the symmetric ``Delta_k . Delta_l``
     of pair p, so ``||c_a - c_b||^2 = beta^T G_p beta``, the residual ``rho_p - beta^T G_p beta``
     and its gradient ``2 G_p beta``. J is square, so the Gauss-Newton step ``(J^T J)^-1 J^T r``
-    is the Newton step ``J^-1 r`` (adjugate form). Returns the betas and whether they converged
-    (last step below 1e-7 relative)."""
+    is the Newton step ``J^-1 r`` (adjugate form). Stops at rounding level, or one step earlier
+    once the convergence is visibly quadratic (the step that is saved would move beta by ~1e-16
+    relative). Returns the betas and whether they converged (last step below 1e-7 relative)."""
     b0, b1, b2 = beta
+    nb2 = b0 * b0 + b1 * b1 + b2 * b2
+    # the three pairs unrolled (rows of J: (a, b, c), (d, e, f), (g, h, i)), no lists per step
+    (p00, p01, p02, p11, p12, p22), (q00, q01, q02, q11, q12, q22), \
+        (s00, s01, s02, s11, s12, s22) = G
+    rho0, rho1, rho2 = rho
     s2 = math.inf
     for it in range(_GN_ITERATIONS):
-        J = []
-        r = []
-        for (g00, g01, g02, g11, g12, g22), rp in zip(G, rho, strict=True):
-            u = g00 * b0 + g01 * b1 + g02 * b2
-            v = g01 * b0 + g11 * b1 + g12 * b2
-            w = g02 * b0 + g12 * b1 + g22 * b2
-            J.append((u, v, w))
-            r.append(rp - (u * b0 + v * b1 + w * b2))
-        (a, b, c), (d, e, f), (g, h, i) = J
+        a, b, c = p00 * b0 + p01 * b1 + p02 * b2, p01 * b0 + p11 * b1 + p12 * b2, \
+            p02 * b0 + p12 * b1 + p22 * b2
+        d, e, f = q00 * b0 + q01 * b1 + q02 * b2, q01 * b0 + q11 * b1 + q12 * b2, \
+            q02 * b0 + q12 * b1 + q22 * b2
+        g, h, i = s00 * b0 + s01 * b1 + s02 * b2, s01 * b0 + s11 * b1 + s12 * b2, \
+            s02 * b0 + s12 * b1 + s22 * b2
+        r0 = rho0 - (a * b0 + b * b1 + c * b2)
+        r1 = rho1 - (d * b0 + e * b1 + f * b2)
+        r2 = rho2 - (g * b0 + h * b1 + i * b2)
         A0, A1, A2 = e * i - f * h, c * h - b * i, b * f - c * e
         det = a * A0 + d * A1 + g * A2
         if not det or not math.isfinite(det):
             return [b0, b1, b2], False
-        r0, r1, r2 = r
         # J = 2 Gb: the step J^-1 r = (Gb)^-1 r / 2
         k = 0.5 / det
         x0 = (A0 * r0 + A1 * r1 + A2 * r2) * k
         x1 = ((f * g - d * i) * r0 + (a * i - c * g) * r1 + (c * d - a * f) * r2) * k
         x2 = ((d * h - e * g) * r0 + (b * g - a * h) * r1 + (a * e - b * d) * r2) * k
         b0, b1, b2 = b0 + x0, b1 + x1, b2 + x2
+        s2_prev, nb2_prev = s2, nb2
         s2 = 4.0 * (x0 * x0 + x1 * x1 + x2 * x2)  # the unhalved step, as in _gauss_newton
         nb2 = b0 * b0 + b1 * b1 + b2 * b2
         # at its fixed point to rounding: the remaining iterations would move beta ~1e-16
         if it >= 3 and s2 <= _GN_AT_REST**2 * nb2:
+            break
+        # or converging quadratically, relative step d_t <= 10 d_{t-1}^2, with d_t <= 1e-8: the
+        # next step (~d_t^2) would be at rounding level too (had the convergence been only
+        # linear, at a rate r, this needs r^2 <= 10 d_t, and what is left is below 3e-12)
+        if it and s2 <= 1e-16 * nb2 and s2 * nb2_prev**2 <= 100.0 * s2_prev**2 * nb2:
             break
     return [b0, b1, b2], s2 < 1e-14 * nb2
 
@@ -450,79 +491,146 @@ def _refine(beta: list, planar: bool, G, dots: np.ndarray, rho: np.ndarray, rhol
     return b[0].tolist(), bool(conv[0])
 
 
-def _mean_error(X: np.ndarray, m: np.ndarray) -> np.ndarray:
-    """Mean reprojection error (E_mean, normalised units) of camera-frame points X (H, n, 3)."""
-    with np.errstate(divide="ignore", invalid="ignore"):
-        d = X[..., :2] / X[..., 2:] - m
-        return np.sqrt(np.sum(d * d, axis=2)).sum(axis=1) / X.shape[1]
+class _Model(NamedTuple):
+    """What depends on the object points only (see :func:`_model`)."""
+
+    planar: bool
+    k: int  # k + 1 control points
+    hand: float  # handedness of the principal frame
+    O: np.ndarray  # (n, (k+1)^2): alpha_i alpha_i^T
+    ones: np.ndarray  # (n, 1)
+    Dm3: np.ndarray  # (pairs, 3, (k+1) * 3): flattened control points -> c_a - c_b per pair
+    rho: np.ndarray  # (pairs,): ||C_a - C_b||^2
+    rhol: list  # the same as floats
+    A3: np.ndarray  # (2n + 1, k+1): [alphas; alphas - mean alphas; mean alphas]
+    W4: np.ndarray  # (3 (2n + 1), 4): the weighted sums of _score
+    SaXt: np.ndarray  # (4, k+1): [Sa | mean alphas]^T, see _align_control
+    Pbar: np.ndarray  # (3,): centroid
 
 
-def _model(P: np.ndarray):
+def _model(P: np.ndarray) -> _Model:
     """Everything that depends on the object points only, computed once per model (cached by
     :func:`~cutterpose.pnp.base.model_cache`)."""
     cache = model_cache(P)
-    model = cache.get("epnp-v2")  # (a new key: the layout of the tuple changed)
+    model = cache.get("epnp-v3")  # (a new key: the layout changed)
     if model is None:
         planar = is_planar(P)
         if not planar and len(P) < 4:
             raise DegenerateInputError(f"EPnP needs at least 4 non-planar points, got {len(P)}")
+        n = len(P)
         alphas, C, k, hand = _control_points(P, planar)
-        O = (alphas[:, :, None] * alphas[:, None, :]).reshape(len(P), -1)
+        O = (alphas[:, :, None] * alphas[:, None, :]).reshape(n, -1)
         ia, ib = np.triu_indices(k + 1, 1)
-        # Delta^(ab) = c_a - c_b for every pair as one product with a +-1 matrix
+        # Delta^(ab) = c_a - c_b of every pair as one product with a +-1 matrix, acting on the
+        # flattened control points (index 3 j + coordinate)
         Dm = np.zeros((len(ia), k + 1))
         Dm[np.arange(len(ia)), ia] = 1.0
         Dm[np.arange(len(ia)), ib] = -1.0
         rho = np.sum((C[ia] - C[ib]) ** 2, axis=1)
-        dw = np.linalg.norm(P - P.mean(axis=0), axis=1)
-        # X - Xbar = (alphas - mean alphas) c: the centred alphas give the centred points
-        ac = alphas - alphas.mean(axis=0)
-        for arr in (alphas, O, Dm, rho, dw, ac):
-            arr.flags.writeable = False
-        model = cache["epnp-v2"] = (planar, alphas, O, k, hand, Dm, rho, rho.tolist(), dw, ac)
+        Pbar = P.mean(axis=0)
+        # X - Xbar = (alphas - mean alphas) c: the centred alphas give the centred points, the
+        # mean alphas the centroid
+        abar = alphas.mean(axis=0)
+        ac = alphas - abar
+        # for the alignment: the cross-covariance sum_i (X_i - Xbar)(P_i - Pbar)^T is c^T Sa
+        # with Sa = ac^T (P - Pbar), and the centroid Xbar is c^T abar: from the control points
+        # c alone
+        SaXt = np.vstack([(P - Pbar).T @ ac, abar])
+        # rows: the norms, the squared norms and the depths of [X (errors); X - Xbar; Xbar]
+        W4 = np.zeros((3, 2 * n + 1, 4))
+        W4[0, :n, 0] = 1.0 / n  # E_mean
+        W4[0, n:2 * n, 1] = np.linalg.norm(P - Pbar, axis=1)  # sum_i |X_i - Xbar| dw_i
+        W4[1, n:2 * n, 2] = 1.0  # sum_i |X_i - Xbar|^2
+        W4[2, 2 * n, 3] = 1.0  # mean depth
+        W4 = W4.reshape(-1, 4)
+        Dm3 = np.kron(Dm, np.eye(3)).reshape(len(ia), 3, 3 * (k + 1))
+        model = _Model(planar, k, hand, O, np.ones((n, 1)), Dm3, rho, rho.tolist(),
+                       np.vstack([alphas, ac, abar]), W4, SaXt, Pbar)
+        for arr in model:
+            if isinstance(arr, np.ndarray):
+                arr.flags.writeable = False
+        cache["epnp-v3"] = model
     return model
+
+
+def _score(hyps: list, Wf: np.ndarray, md: _Model, m: np.ndarray):
+    """Mean reprojection error (E_mean, normalised units) of every hypothesis, its scale to the
+    object's distances from the centroid (least squares) and its mean depth, as lists.
+
+    The camera-frame control points ``c = sum_k beta_k w_k`` give the points ``X = alphas c``,
+    the centred points ``X - Xbar = (alphas - mean alphas) c`` and the centroid ``Xbar`` in one
+    product with the model's stacked ``A3 = [alphas; alphas - mean alphas; mean alphas]``. With
+    ``X_i`` replaced by its reprojection error ``X_i / z_i - (u_i, v_i, 1)`` (third entry 0),
+    the row norms give ``E_mean`` and ``sum_i |X_i - Xbar| dw_i``, their squares
+    ``sum_i |X_i - Xbar|^2``, the depths the mean depth: one weighted sum (``md.W4``)."""
+    n = len(m)
+    c = (np.array(hyps) @ Wf).reshape(len(hyps), -1, 3)
+    T = md.A3 @ c  # (h, 2n + 1, 3)
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        X = T[:, :n]
+        X /= X[:, :, 2:]
+        X -= np.concatenate((m, md.ones), axis=1)
+        sq = (T * T) @ _ONES3
+        e, num, den, zbar = (np.concatenate((np.sqrt(sq), sq, T[:, :, 2]), axis=1)
+                             @ md.W4).T.tolist()
+    # E_mean is invariant to the scale and sign of beta; a zero spread has no scale
+    return e, [a / b if b else math.nan for a, b in zip(num, den, strict=True)], zbar
+
+
+def _align_control(SXt: np.ndarray, Pbar: np.ndarray):
+    """:func:`~cutterpose.pnp.base.align_rigid` of ``P`` to ``X = alphas c`` from
+    ``SXt = [Sa | abar]^T c`` (4, 3) of the camera-frame control points ``c``: the transposed
+    cross-covariance ``(sum_i (X_i - Xbar)(P_i - Pbar)^T)^T = Sa^T c`` and the centroid
+    ``Xbar = c^T abar`` of X (model-only ``Sa``, ``abar``, see :func:`_model`), without forming X.
+    The same AL-ok rule: ``S = diag(1, 1, -1)`` when ``det(U V^T) < 0``."""
+    U, _, Vt = svd_small(SXt[:3].T)
+    R = U @ Vt
+    (a, b, c), (d, e, f), (g, h, i) = R.tolist()
+    if a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g) < 0:
+        R -= 2.0 * np.outer(U[:, 2], Vt[2])
+    return R, SXt[3] - R @ Pbar
+
+
+def _det3(a: list) -> float:
+    """Determinant of a 3x3 nested list (Python floats)."""
+    (a00, a01, a02), (a10, a11, a12), (a20, a21, a22) = a
+    return (a00 * (a11 * a22 - a12 * a21) - a01 * (a10 * a22 - a12 * a20)
+            + a02 * (a10 * a21 - a11 * a20))
 
 
 def candidates(P: np.ndarray, m: np.ndarray, f_px: float | None = None) -> list[Candidate]:
     """EPnP poses: the refined best hypothesis, and a second, different solution when there is
     one (see the module docstring). ``f_px`` (the focal length in pixels) only sets the N >= 3
     gate; without it the nominal focal length of the project cameras is assumed."""
-    planar, alphas, O, k, hand, Dm, rho, rhol, dw, ac = _model(P)
+    md = _model(P)
+    planar, k, rho, rhol = md.planar, md.k, md.rho, md.rhol
     n_max = k + 1
-    n = len(P)
-    W = _kernel(alphas, m, n_max, O)  # (n_max, k+1, 3)
-    Df = (Dm @ W).transpose(1, 0, 2)  # (pairs, n_max, 3)
-    dots = Df @ Df.transpose(0, 2, 1)  # (pairs, n_max, n_max): Delta_k . Delta_l
+    V = _kernel(md.O, md.ones, m, n_max)
+    Wf = V.T  # row k: the control points of beta = e_k, flattened
+    D = md.Dm3 @ V  # (pairs, 3, n_max): Delta of every w_k
+    dots = D.transpose(0, 2, 1) @ D  # (pairs, n_max, n_max): Delta_k . Delta_l
     dl = dots.tolist()
-    Y = alphas @ W  # X = alphas c = sum_k beta_k (alphas W_k): (n_max, n, 3)
-    Yf = Y.reshape(n_max, -1)
 
     hyps = _hypotheses_low(dl, rhol, n_max)
-    X = (np.array(hyps) @ Yf).reshape(-1, n, 3)
-    e = _mean_error(X, m)  # invariant to the scale and sign of beta
+    el, sc, zbar = _score(hyps, Wf, md, m)
     gate = _GATE_PX / (f_px if f_px else _NOMINAL_F_PX)
-    if not min(e.tolist()) <= gate:  # NaN runs them too
+    if not min(el) <= gate:  # NaN runs them too
         more = _hypotheses(dots, rho, n_max, start=3)
         if more:
             hyps += more
-            X = (np.array(hyps) @ Yf).reshape(-1, n, 3)
-            e = _mean_error(X, m)
+            el, sc, zbar = _score(hyps, Wf, md, m)
 
-    # scale to the object's distances from the centroid (least squares), positive mean depth
-    Xc = (np.array(hyps) @ (ac @ W).reshape(n_max, -1)).reshape(-1, n, 3)
-    dc2 = np.sum(Xc * Xc, axis=2)
-    dc = np.sqrt(dc2)
-    sc = ((dc @ dw) / dc2.sum(axis=1)).tolist()
-    zk = Y[:, :, 2].sum(axis=1).tolist()  # sum of the depths of beta = e_k
-    bl, el = [], []
-    for beta, eh, s in zip(hyps, e.tolist(), sc, strict=True):
-        if not (math.isfinite(eh) and math.isfinite(s) and s > 0):
-            eh = math.inf
-        elif sum(b * z for b, z in zip(beta, zk, strict=True)) < 0:
+    # scaled to the object's distances, positive mean depth
+    bl = []
+    for i, (beta, s) in enumerate(zip(hyps, sc, strict=True)):
+        if not (math.isfinite(el[i]) and math.isfinite(s) and s > 0):
+            el[i] = math.inf
+        elif zbar[i] < 0:
             s = -s
         bl.append([b * s for b in beta])
-        el.append(eh)
-    order = sorted(range(len(bl)), key=el.__getitem__)
+    # hypotheses by E_mean, stably (two, the usual case, without sorted's overhead)
+    order = (([1, 0] if el[1] < el[0] else [0, 1]) if len(el) == 2
+             else sorted(range(len(el)), key=el.__getitem__))
     if not el[order[0]] < math.inf:
         return []
 
@@ -544,27 +652,29 @@ def candidates(P: np.ndarray, m: np.ndarray, f_px: float | None = None) -> list[
             kept.append(second)
         break
 
-    if planar:  # positive mean depth (GN keeps the sign; checked again all the same)
-        kept = [b if sum(x * z for x, z in zip(b, zk, strict=True)) >= 0 else [-x for x in b]
-                for b in kept]
+    c = (np.array(kept) @ Wf).reshape(-1, k + 1, 3)
+    SXt = md.SaXt @ c  # (h, 4, 3): [cross-covariance^T; centroid] (see _align_control)
+    if planar:
+        # positive mean depth (GN keeps the sign; checked again all the same)
+        signs = [-1.0 if z < 0 else 1.0 for z in SXt[:, 3, 2].tolist()]
     else:
         # det [c_j - c_0] = det(R) det(diag(sigma) V^T): its sign must be the frame's
-        c = (np.array(kept) @ W.reshape(n_max, -1)).reshape(-1, k + 1, 3)
-        sign = (np.sign(np.linalg.det(c[:, 1:] - c[:, :1])) * hand).tolist()
-        kept = [[x * sg for x in b] for b, sg in zip(kept, sign, strict=True)]
-    return align_rigid_many(P, (np.array(kept) @ Yf).reshape(-1, n, 3))
+        # (as np.sign: a zero or NaN determinant zeroes or poisons the candidate)
+        signs = [((d > 0) - (d < 0) if d == d else math.nan) * md.hand
+                 for d in map(_det3, (c[:, 1:] - c[:, :1]).tolist())]
+    # -beta negates c, so the cross-covariance and the centroid
+    return [_align_control(S if sg == 1.0 else S * sg, md.Pbar)
+            for S, sg in zip(SXt, signs, strict=True)]
 
 
 def _dist(a: list, b: list | None) -> float:
     """Euclidean norm of ``a - b`` (of ``a`` when b is None) on Python floats."""
-    if b is None:
-        return sum(x * x for x in a) ** 0.5
-    return sum((x - y) ** 2 for x, y in zip(a, b, strict=True)) ** 0.5
+    return math.hypot(*a) if b is None else math.dist(a, b)
 
 
 def _dist_pm(a: list, b: list) -> float:
     """``min(||a - b||, ||a + b||)``: beta and -beta are the same solution up to the sign."""
-    return min(_dist(a, b), sum((x + y) ** 2 for x, y in zip(a, b, strict=True)) ** 0.5)
+    return min(math.dist(a, b), math.dist(a, [-y for y in b]))
 
 
 def solve(points_px, camera, model):
