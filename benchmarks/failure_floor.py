@@ -48,8 +48,9 @@ def ideal_failure_probability(trials, n_samples: int = 4000, seed: int = 0,
     """Per trial, P(gross failure) of an unbiased estimator with the CRLB covariance."""
     J = pixel_jacobian(trials.R_cam_holder, trials.t_cam_holder_mm, trials.points_holder_mm,
                        trials.camera.K)
-    cov = np.linalg.inv(np.einsum("tki,tkj->tij", J, J)) * trials.sigma_px[:, None, None] ** 2
-    L = np.linalg.cholesky(cov)
+    # Cholesky factor of the covariance at 1 px, scaled by sigma (sigma = 0 gives L = 0)
+    L = (np.linalg.cholesky(np.linalg.inv(np.einsum("tki,tkj->tij", J, J)))
+         * trials.sigma_px[:, None, None])
     dof_true = np.concatenate([euler_deg_from_rotation(trials.R_cam_holder),
                                trials.t_cam_holder_mm], axis=1)
     rng = np.random.default_rng(seed)
