@@ -36,7 +36,8 @@ from ..holder import Holder
 
 __all__ = ["model_points", "model_cache", "check_correspondences", "reprojection_rms", "select",
            "make_solver", "is_planar", "plane_frame", "align_rigid", "align_rigid_many",
-           "image_weights", "kron_normal", "smallest_eigvecs", "svd_small"]
+           "rotation_from_covariance", "image_weights", "kron_normal", "smallest_eigvecs",
+           "svd_small"]
 
 Candidate = tuple[np.ndarray, np.ndarray]
 
@@ -198,12 +199,20 @@ def _align_one(P: np.ndarray, X: np.ndarray) -> Candidate:
         cent = mc["centred"] = (Pc, P - Pc)
     Pc, Pcent = cent
     Xc = X.sum(axis=0) / len(X)
-    U, _, Vt = svd_small((X - Xc).T @ Pcent)
+    R = rotation_from_covariance((X - Xc).T @ Pcent)
+    return R, Xc - R @ Pc
+
+
+def rotation_from_covariance(S: np.ndarray) -> np.ndarray:
+    """The rotation of the rigid alignment whose cross-covariance ``sum_i (X_i - Xbar)(P_i -
+    Pbar)^T`` is ``S`` (3, 3): ``U diag(1, 1, det(U V^T)) V^T`` from ``S = U D V^T`` (the notes'
+    AL-ok rule, valid for planar sets)."""
+    U, _, Vt = svd_small(S)
     R = U @ Vt
     (a, b, c), (d, e, f), (g, h, i) = R.tolist()
     if a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g) < 0:  # S = diag(1,1,-1)
         R -= 2.0 * np.outer(U[:, 2], Vt[2])
-    return R, Xc - R @ Pc
+    return R
 
 
 # B_i^T B_i = [[1, 0, -u], [0, 1, -v], [-u, -v, u^2 + v^2]] of a point's two projection rows

@@ -97,6 +97,7 @@ from .base import (
     kron_normal,
     make_solver,
     model_cache,
+    rotation_from_covariance,
     smallest_eigvecs,
     svd_small,
 )
@@ -583,11 +584,7 @@ def _align_control(SXt: np.ndarray, Pbar: np.ndarray):
     cross-covariance ``(sum_i (X_i - Xbar)(P_i - Pbar)^T)^T = Sa^T c`` and the centroid
     ``Xbar = c^T abar`` of X (model-only ``Sa``, ``abar``, see :func:`_model`), without forming X.
     The same AL-ok rule: ``S = diag(1, 1, -1)`` when ``det(U V^T) < 0``."""
-    U, _, Vt = svd_small(SXt[:3].T)
-    R = U @ Vt
-    (a, b, c), (d, e, f), (g, h, i) = R.tolist()
-    if a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g) < 0:
-        R -= 2.0 * np.outer(U[:, 2], Vt[2])
+    R = rotation_from_covariance(SXt[:3].T)
     return R, SXt[3] - R @ Pbar
 
 
