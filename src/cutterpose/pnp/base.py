@@ -36,7 +36,7 @@ from ..holder import Holder
 
 __all__ = ["model_points", "model_cache", "check_correspondences", "reprojection_rms", "select",
            "make_solver", "is_planar", "plane_frame", "align_rigid", "align_rigid_many",
-           "rotation_from_covariance", "image_weights", "kron_normal", "smallest_eigvecs",
+           "rotation_from_covariance", "det3", "image_weights", "kron_normal", "smallest_eigvecs",
            "svd_small"]
 
 Candidate = tuple[np.ndarray, np.ndarray]
@@ -209,10 +209,16 @@ def rotation_from_covariance(S: np.ndarray) -> np.ndarray:
     AL-ok rule, valid for planar sets)."""
     U, _, Vt = svd_small(S)
     R = U @ Vt
-    (a, b, c), (d, e, f), (g, h, i) = R.tolist()
-    if a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g) < 0:  # S = diag(1,1,-1)
+    if det3(R.tolist()) < 0:  # S = diag(1, 1, -1)
         R -= 2.0 * np.outer(U[:, 2], Vt[2])
     return R
+
+
+def det3(rows) -> float:
+    """Determinant of a 3x3 matrix given as nested lists, on Python floats (np.linalg.det's
+    per-call overhead dominates at this size, on every solve's path)."""
+    (a, b, c), (d, e, f), (g, h, i) = rows
+    return a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g)
 
 
 # B_i^T B_i = [[1, 0, -u], [0, 1, -v], [-u, -v, u^2 + v^2]] of a point's two projection rows
@@ -283,8 +289,7 @@ def _dets(Rs: np.ndarray) -> np.ndarray:
     where np.linalg.det's per-call overhead would dominate."""
     if len(Rs) != 1:
         return np.linalg.det(Rs)
-    (a, b, c), (d, e, f), (g, h, i) = Rs[0].tolist()
-    return np.array([a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g)])
+    return np.array([det3(Rs[0].tolist())])
 
 
 def _select_one(method: str, cand: Candidate, P: np.ndarray, m: np.ndarray,
@@ -296,8 +301,7 @@ def _select_one(method: str, cand: Candidate, P: np.ndarray, m: np.ndarray,
     if not (type(R) is np.ndarray and type(t) is np.ndarray and R.shape == (3, 3)
             and t.shape == (3,) and R.dtype == np.float64 and t.dtype == np.float64):
         return None
-    (a, b, c), (d, e, f), (g, h, i) = R.tolist()
-    det = a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g)
+    det = det3(R.tolist())
     # a finite determinant means a finite R (an inf or NaN entry makes it inf or NaN)
     if not (abs(det - 1.0) <= 1e-6 and all(map(math.isfinite, t.tolist()))):
         return None

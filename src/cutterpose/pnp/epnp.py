@@ -93,6 +93,7 @@ from scipy.linalg.lapack import dgesv as _dgesv
 from ..errors import DegenerateInputError
 from .base import (
     Candidate,
+    det3,
     is_planar,
     kron_normal,
     make_solver,
@@ -588,13 +589,6 @@ def _align_control(SXt: np.ndarray, Pbar: np.ndarray):
     return R, SXt[3] - R @ Pbar
 
 
-def _det3(a: list) -> float:
-    """Determinant of a 3x3 nested list (Python floats)."""
-    (a00, a01, a02), (a10, a11, a12), (a20, a21, a22) = a
-    return (a00 * (a11 * a22 - a12 * a21) - a01 * (a10 * a22 - a12 * a20)
-            + a02 * (a10 * a21 - a11 * a20))
-
-
 def candidates(P: np.ndarray, m: np.ndarray, f_px: float | None = None) -> list[Candidate]:
     """EPnP poses: the refined best hypothesis, and a second, different solution when there is
     one (see the module docstring). ``f_px`` (the focal length in pixels) only sets the N >= 3
@@ -658,7 +652,7 @@ def candidates(P: np.ndarray, m: np.ndarray, f_px: float | None = None) -> list[
         # det [c_j - c_0] = det(R) det(diag(sigma) V^T): its sign must be the frame's
         # (as np.sign: a zero or NaN determinant zeroes or poisons the candidate)
         signs = [((d > 0) - (d < 0) if d == d else math.nan) * md.hand
-                 for d in map(_det3, (c[:, 1:] - c[:, :1]).tolist())]
+                 for d in map(det3, (c[:, 1:] - c[:, :1]).tolist())]
     # -beta negates c, so the cross-covariance and the centroid
     return [_align_control(S if sg == 1.0 else S * sg, md.Pbar)
             for S, sg in zip(SXt, signs, strict=True)]
