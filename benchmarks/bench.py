@@ -22,7 +22,7 @@ import numpy as np  # noqa: E402
 cv2.setNumThreads(1)
 
 from cutterpose.experiments.synthetic import generate_trials  # noqa: E402
-from cutterpose.holder import default_holder  # noqa: E402
+from cutterpose.geometry.holder import default_holder  # noqa: E402
 from cutterpose.methods import get_method  # noqa: E402
 
 # method -> target median in microseconds (from the issues)
@@ -109,12 +109,12 @@ def bench_solvers(n_trials: int) -> None:
 def bench_measure(repeats: int = 5) -> None:
     try:
         from cutterpose.pipeline import measure
-        from cutterpose.render import render_holder
+        from cutterpose.render.analytic import render_holder
     except ImportError as e:
         print(f"\nmeasure: not available ({e})")
         return
-    from cutterpose.camera import default_camera
-    from cutterpose.pose import Pose
+    from cutterpose.geometry.camera import default_camera
+    from cutterpose.geometry.pose import Pose
 
     cam = default_camera("table1")
     holder = default_holder()

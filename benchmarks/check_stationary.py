@@ -1,7 +1,8 @@
 """Proof check: the polynomial solvers find the global minimum of their algebraic cost.
 
 ASPnP and OPnP claim to return *all* real stationary points of their cost (Macaulay null-space
-solver, :mod:`cutterpose.pnp.polysolve`). This script checks it against an independent method:
+solver, :mod:`cutterpose.solvers.pnp.polysolve`). This script checks it against an independent
+method:
 a dense multi-start local minimisation of the same cost from many random starts (damped Newton
 descent from every start, vectorised; the distinct end points finished by
 ``scipy.optimize.minimize``, trust-region Newton with the exact gradient and Hessian).
@@ -37,10 +38,10 @@ import time  # noqa: E402
 import numpy as np  # noqa: E402
 from scipy.optimize import minimize  # noqa: E402
 
-from cutterpose.camera import default_camera  # noqa: E402
-from cutterpose.holder import default_holder  # noqa: E402
-from cutterpose.pnp import aspnp, opnp  # noqa: E402
-from cutterpose.pose import rotation_from_euler_deg  # noqa: E402
+from cutterpose.geometry.camera import default_camera  # noqa: E402
+from cutterpose.geometry.holder import default_holder  # noqa: E402
+from cutterpose.geometry.pose import rotation_from_euler_deg  # noqa: E402
+from cutterpose.solvers.pnp import aspnp, opnp  # noqa: E402
 
 REL_TOL = 1e-9
 ROUND_TOL = 1e-13  # times |w|^T |G| |w|: bound on the rounding error of a cost evaluation

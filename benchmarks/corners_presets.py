@@ -1,7 +1,7 @@
 """Detected vs true corners on one rendered pose per preset (docs/notes/images.md, "Measured").
 
 Renders pose (3, -4, 5 deg, 10, -8, 610 mm) with the Table 1 camera and seed 1 for each preset,
-runs :func:`cutterpose.features.detect_features` with the given parameters and prints the RMS,
+runs :func:`cutterpose.image.features.detect_features` with the given parameters and prints the RMS,
 the largest coordinate error and the mean offset of the corners (best cyclic assignment), the
 threshold and the segmentation path used, and the time per stage.
 
@@ -18,12 +18,12 @@ import time
 
 import numpy as np
 
-from cutterpose.camera import default_camera
 from cutterpose.errors import CutterposeError
-from cutterpose.features import FeatureParams, detect_features
-from cutterpose.holder import default_holder
-from cutterpose.pose import Pose
-from cutterpose.render import render_holder
+from cutterpose.geometry.camera import default_camera
+from cutterpose.geometry.holder import default_holder
+from cutterpose.geometry.pose import Pose
+from cutterpose.image import FeatureParams, detect_features
+from cutterpose.render.analytic import render_holder
 
 
 def best_assignment(c: np.ndarray, true: np.ndarray):

@@ -34,13 +34,13 @@ import numpy as np
 from scipy.stats import binomtest, poisson
 
 from cutterpose.experiments.synthetic import generate_trials, run_trials
-from cutterpose.methods import get_method
-from cutterpose.pose import (
+from cutterpose.geometry.pose import (
     euler_deg_from_rotation,
     pixel_jacobian,
     pose_errors,
     rotation_from_euler_deg,
 )
+from cutterpose.methods import get_method
 
 
 def ideal_failure_probability(trials, n_samples: int = 4000, seed: int = 0,

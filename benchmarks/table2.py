@@ -149,7 +149,7 @@ def main() -> None:
     out = Path(a.out)
     if not a.report_only:
         from cutterpose.experiments.images import run_images
-        from cutterpose.features import FeatureParams
+        from cutterpose.image import FeatureParams
 
         params = FeatureParams(model_fallback="none" if a.paper_segmentation else "homography")
         run_images(a.folder, a.methods.split(","), out, workers=a.workers, params=params)

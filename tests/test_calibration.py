@@ -13,13 +13,19 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from cutterpose.calibration import calibrate, calibrate_images, detect_plate, zhang_init
-from cutterpose.camera import DivisionCamera, PinholeCamera, default_camera, load_camera
+from cutterpose.calibration.intrinsics import calibrate, calibrate_images, detect_plate, zhang_init
+from cutterpose.calibration.plate import (
+    CirclePlate,
+    ellipse_center_bias_px,
+    render_plate,
+    sample_plate_poses,
+)
 from cutterpose.cli import app
 from cutterpose.errors import DegenerateInputError, FeatureError
-from cutterpose.plate import CirclePlate, ellipse_center_bias_px, render_plate, sample_plate_poses
-from cutterpose.pose import Pose
-from cutterpose.render import preset
+from cutterpose.geometry.camera import DivisionCamera, PinholeCamera, default_camera
+from cutterpose.geometry.camera_files import load_camera
+from cutterpose.geometry.pose import Pose
+from cutterpose.render.analytic import preset
 
 PLATE = CirclePlate()
 
@@ -58,7 +64,7 @@ def test_plate_geometry_and_file(tmp_path):
     probes = PLATE.mark_probe_mm()
     dk = PLATE.darkness(probes[:, 0], probes[:, 1], 0.1)
     assert dk[0] == 1.0 and np.all(dk[1:] == 0.0)
-    from cutterpose.plate import load_plate, save_plate
+    from cutterpose.calibration.plate import load_plate, save_plate
 
     save_plate(PLATE, tmp_path / "plate.json")
     assert load_plate(tmp_path / "plate.json") == PLATE

@@ -4,15 +4,14 @@ import cv2
 import numpy as np
 import pytest
 
-from cutterpose.camera import (
+from cutterpose.errors import CameraFileError
+from cutterpose.geometry.camera import (
     DivisionCamera,
     OpenCVCamera,
     PinholeCamera,
     camera_from_dict,
-    load_camera,
-    save_camera,
 )
-from cutterpose.errors import CameraFileError
+from cutterpose.geometry.camera_files import load_camera, save_camera
 
 
 def _grid(cam, step=16):

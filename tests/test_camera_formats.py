@@ -6,23 +6,23 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from cutterpose.camera import (
+from cutterpose.cli import app
+from cutterpose.errors import CameraFileError
+from cutterpose.geometry.camera import (
     DivisionCamera,
     OpenCVCamera,
     PinholeCamera,
     default_camera,
-    load_camera,
-    save_camera,
 )
-from cutterpose.camera_formats import (
+from cutterpose.geometry.camera_files import (
     convert_camera,
     detect_format,
+    load_camera,
     read_halcon,
+    save_camera,
     to_division,
     to_opencv,
 )
-from cutterpose.cli import app
-from cutterpose.errors import CameraFileError
 
 # the example of HALCON's read_cam_par reference page (division model), with its comment,
 # tab/space layout and parameter order

@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from cutterpose.camera import save_camera
 from cutterpose.cli import app
-from cutterpose.holder import default_holder
-from cutterpose.pose import Pose
-from cutterpose.render import render_holder
+from cutterpose.geometry.camera_files import save_camera
+from cutterpose.geometry.holder import default_holder
+from cutterpose.geometry.pose import Pose
+from cutterpose.render.analytic import render_holder
 from test_features import small_camera
 
 runner = CliRunner()

@@ -7,9 +7,9 @@ from pathlib import Path
 import numpy as np
 
 from cutterpose.experiments.synthetic import generate_trials
-from cutterpose.holder import default_holder
+from cutterpose.geometry.holder import default_holder
+from cutterpose.geometry.pose import pose_errors
 from cutterpose.methods import get_method
-from cutterpose.pose import pose_errors
 
 _path = Path(__file__).resolve().parents[1] / "benchmarks" / "failure_floor.py"
 _spec = importlib.util.spec_from_file_location("failure_floor", _path)

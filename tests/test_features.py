@@ -5,18 +5,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from cutterpose.camera import DivisionCamera, default_camera
 from cutterpose.errors import FeatureError, ImageError
-from cutterpose.features import (
-    FeatureParams,
-    check_image,
-    detect_features,
-    load_image,
-    segment_contour,
-)
-from cutterpose.holder import default_holder
-from cutterpose.pose import Pose
-from cutterpose.render import render_holder
+from cutterpose.geometry.camera import DivisionCamera, default_camera
+from cutterpose.geometry.holder import default_holder
+from cutterpose.geometry.pose import Pose
+from cutterpose.image import FeatureParams, check_image, detect_features, load_image
+from cutterpose.image.contour import segment_contour
+from cutterpose.render.analytic import render_holder
 
 SCALE = 0.25  # a reduced Table 1 camera keeps the tests fast
 
@@ -79,7 +74,7 @@ def test_segmentation_lines_arcs_and_length_filter():
     prims = segment_contour(c, FeatureParams())
     kinds = [p.kind for p in prims]
     assert "arc" in kinds
-    from cutterpose.features import _merge_collinear
+    from cutterpose.image.contour import _merge_collinear
     lines = [p for p in prims if p.kind == "line" and p.length_px >= 50]
     merged = _merge_collinear(lines, FeatureParams())
     assert len(merged) == 4  # top, right, bottom (merged over the notch), left
@@ -126,7 +121,7 @@ def test_no_holder_and_holder_out_of_view(easy):
 def test_fit_model_to_contour_recovers_the_projection():
     """Model-guided fallback: the homography fitted to a noisy contour with a bump (a stain)
     puts the model's corners on the true ones."""
-    from cutterpose.contour_model import _apply_h, fit_model_to_contour
+    from cutterpose.image.contour_model import _apply_h, fit_model_to_contour
 
     cam = small_camera()
     hol = default_holder()

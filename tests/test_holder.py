@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from cutterpose.errors import HolderModelError
-from cutterpose.holder import default_holder, holder_from_dict, load_holder
+from cutterpose.geometry.holder import default_holder, holder_from_dict, load_holder
 
 
 def _spec():

@@ -1,14 +1,17 @@
-"""Distance matching and its continuous refinement (cutterpose.matching)."""
+"""Distance matching and its continuous refinement (cutterpose.solvers.matching)."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from cutterpose.camera import default_camera
 from cutterpose.errors import DegenerateInputError, InputError
-from cutterpose.holder import default_holder
-from cutterpose.matching import (
+from cutterpose.geometry.camera import default_camera
+from cutterpose.geometry.holder import default_holder
+from cutterpose.geometry.pose import Pose, geodesic_deg
+from cutterpose.geometry.working_range import MotionRange, PoseOutOfRangeError
+from cutterpose.methods import get_method
+from cutterpose.solvers.matching import (
     PAPER_STEPS,
     TemplateLibrary,
     distance_image,
@@ -17,9 +20,7 @@ from cutterpose.matching import (
     solve_dm,
     solve_dm_plus,
 )
-from cutterpose.methods import get_method
-from cutterpose.pose import Pose, geodesic_deg
-from cutterpose.vanishing import MotionRange, PoseOutOfRangeError, initial_pose
+from cutterpose.solvers.vanishing import initial_pose
 
 CAM = default_camera("synthetic")
 HOLDER = default_holder()
@@ -105,7 +106,7 @@ def test_dm_plus_cannot_shrink_to_a_point():
     pose = POSES[0]
     px = observe(pose)
     start = Pose.from_euler(*pose.dof[:3], *(pose.t_mm + [0, 0, 3000]))
-    from cutterpose.estimate import PoseEstimate
+    from cutterpose.solvers.estimate import PoseEstimate
     est = refine_continuous(PoseEstimate("dm", start.R, start.t_mm), px, CAM, HOLDER,
                             MotionRange(), slack=100.0)
     assert len(set(est.info["assignment"])) == HOLDER.n_corners

@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from cutterpose.holder import default_holder
+from cutterpose.geometry.holder import default_holder
+from cutterpose.geometry.pose import Pose, pose_errors
 from cutterpose.pipeline import QualityLimits, measure, measure_features, order_for_model
-from cutterpose.pose import Pose, pose_errors
-from cutterpose.render import render_holder
+from cutterpose.render.analytic import render_holder
 from test_features import small_camera
 
 TRUE = Pose.from_euler(-2, 3, -4, -6, 5, 590)
@@ -45,7 +45,7 @@ def test_order_for_model_recovers_holder_order(rendered):
 
 def test_verdict_refuses_outside_working_range_and_large_residual(rendered):
     cam, r = rendered
-    from cutterpose.features import detect_features
+    from cutterpose.image import detect_features
 
     f = detect_features(r.image, cam, default_holder())
     narrow = QualityLimits(range_half_width_dof=(1, 1, 1, 2, 2, 2),

@@ -7,10 +7,10 @@ from scipy.spatial.transform import Rotation
 
 from cutterpose.errors import DegenerateInputError, InputError
 from cutterpose.experiments.synthetic import generate_trials
+from cutterpose.geometry.pose import geodesic_deg, rotation_from_euler_deg
 from cutterpose.methods import get_method
-from cutterpose.pnp.base import reprojection_rms
-from cutterpose.pnp.refine import planar_flip, refine_pose
-from cutterpose.pose import geodesic_deg, rotation_from_euler_deg
+from cutterpose.solvers.pnp.base import reprojection_rms
+from cutterpose.solvers.pnp.refine import planar_flip, refine_pose
 
 BASE = ["dlt", "epnp", "rpnp"]
 ALL = BASE + [f"{b}+lm" for b in BASE]
@@ -295,7 +295,7 @@ def test_planar_points_behind_camera_give_the_twin(name, cam_syn, holder):
 def test_model_cache_follows_the_array_contents(cam_syn, holder):
     """Per-model caches are keyed on the points' bytes: a different (or edited) model array with
     the same shape never reuses another model's plane frame / control points."""
-    from cutterpose.pnp.base import model_cache
+    from cutterpose.solvers.pnp.base import model_cache
 
     P = holder.points_holder_mm
     R = rotation_from_euler_deg(10.0, -20.0, 5.0)
@@ -315,7 +315,7 @@ def test_model_cache_follows_the_array_contents(cam_syn, holder):
 
 
 def test_linear_algebra_helpers_match_numpy():
-    from cutterpose.pnp.base import (
+    from cutterpose.solvers.pnp.base import (
         align_rigid_many,
         image_weights,
         kron_normal,
@@ -386,7 +386,7 @@ def _rpnp_plain_cost_derivative(P, cos, i1, i2):
 def _rpnp_plain_recover(t, b, m, Pa, i1, i2):
     """Camera-frame points for the root t by the explicit 2n x 5 least squares in (c, s, T),
     then T refitted for the normalised (c, s)."""
-    from cutterpose.pnp.rpnp import _complete_frame
+    from cutterpose.solvers.pnp.rpnp import _complete_frame
 
     ax = (b[i1] @ b[i2] + t) * b[i2] - b[i1]
     R_x = _complete_frame(ax / np.linalg.norm(ax))
@@ -414,8 +414,8 @@ def test_rpnp_steps_match_the_plain_formulas():
     """RPnP's regrouped polynomial, its root filter on Python floats and the linear step from
     moments (T eliminated) compute what the notes' coefficients, np.roots and the explicit
     2n x 5 least squares compute."""
-    from cutterpose.pnp import rpnp
-    from cutterpose.pnp.base import image_weights
+    from cutterpose.solvers.pnp import rpnp
+    from cutterpose.solvers.pnp.base import image_weights
 
     tr = generate_trials(30, 2.0, seed=5)
     cases = [(tr.points_holder_mm, tr.camera.normalize_px(px)) for px in tr.points_px]
@@ -454,7 +454,7 @@ def test_rpnp_steps_match_the_plain_formulas():
 def test_select_single_candidate_fast_path():
     """One candidate takes a shortcut through select; the same candidate as lists takes the
     general path: the same estimate, failures included."""
-    from cutterpose.pnp.base import select
+    from cutterpose.solvers.pnp.base import select
 
     tr = generate_trials(10, 1.0, seed=2)
     P, f = tr.points_holder_mm, tr.camera.focal_px
@@ -477,7 +477,7 @@ def test_select_single_candidate_fast_path():
 
 
 def test_pinhole_normalize_px_matches_the_generic_formula(cam_syn):
-    from cutterpose.camera import Camera, PinholeCamera
+    from cutterpose.geometry.camera import Camera, PinholeCamera
 
     cam = PinholeCamera(1800.0, 1750.0, 1020.5, 760.25, (2048, 1536), skew=0.7)
     px = np.random.default_rng(1).uniform(0, 2000, (7, 5, 2))
@@ -491,7 +491,7 @@ def test_epnp_gate_and_second_solution(monkeypatch):
     """EPnP builds N >= 3 only above the 5 px gate (for the camera's own focal length); its
     second candidate, when present, is a different pose (no false ambiguity from a neighbour
     of the best); forcing N = 3 everywhere changes the pose by no more than rounding."""
-    from cutterpose.pnp import epnp
+    from cutterpose.solvers.pnp import epnp
 
     calls = []
     orig = epnp._hypotheses
@@ -527,8 +527,8 @@ def test_epnp_steps_match_the_plain_formulas():
     """EPnP's normal matrix gathered from ``E^T O`` is kron_normal's bit for bit; the hypothesis
     scores from one stacked product, the pose from the control points alone and the planar
     Newton's quadratic-convergence stop give what the plain formulas on the points give."""
-    from cutterpose.pnp import epnp
-    from cutterpose.pnp.base import align_rigid, kron_normal
+    from cutterpose.solvers.pnp import epnp
+    from cutterpose.solvers.pnp.base import align_rigid, kron_normal
 
     tr = generate_trials(20, 2.0, seed=7)
     cases = [(tr.points_holder_mm, tr.camera.normalize_px(px)) for px in tr.points_px]

@@ -8,13 +8,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cutterpose.camera import default_camera
 from cutterpose.errors import DegenerateInputError, InputError
-from cutterpose.holder import default_holder
+from cutterpose.geometry.camera import default_camera
+from cutterpose.geometry.holder import default_holder
+from cutterpose.geometry.pose import Pose, pose_errors, rotation_from_euler_deg
 from cutterpose.methods import get_method
-from cutterpose.pnp import aspnp, opnp
-from cutterpose.pnp.polysolve import MacaulaySolver, PolySystem, monomials
-from cutterpose.pose import Pose, pose_errors, rotation_from_euler_deg
+from cutterpose.solvers.pnp import aspnp, opnp
+from cutterpose.solvers.pnp.polysolve import MacaulaySolver, PolySystem, monomials
 
 CAM = default_camera("synthetic")
 HOLDER = default_holder()

@@ -4,7 +4,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from cutterpose.errors import InputError
-from cutterpose.pose import (
+from cutterpose.geometry.pose import (
     Pose,
     euler_deg_from_rotation,
     geodesic_deg,

@@ -9,12 +9,12 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from cutterpose.camera import DivisionCamera, default_camera
 from cutterpose.cli import app
 from cutterpose.errors import InputError
-from cutterpose.holder import default_holder
-from cutterpose.pose import Pose
-from cutterpose.render import (
+from cutterpose.geometry.camera import DivisionCamera, default_camera
+from cutterpose.geometry.holder import default_holder
+from cutterpose.geometry.pose import Pose
+from cutterpose.render.analytic import (
     PRESETS,
     add_sensor_noise,
     defocus,

@@ -11,8 +11,8 @@ from cutterpose.experiments.synthetic import (
     run_synthetic,
     run_trials,
 )
+from cutterpose.geometry.pose import euler_deg_from_rotation, rotation_from_euler_deg
 from cutterpose.methods import get_method
-from cutterpose.pose import euler_deg_from_rotation, rotation_from_euler_deg
 
 
 def test_trials_follow_protocol(cam_syn):
@@ -65,7 +65,7 @@ def test_ml_reference_reaches_crlb_at_1px():
     tr = generate_trials(2000, 1.0, seed=0)
     res = run_trials([get_method("opencv-ippe-lm")], tr)
     R, t, _, _ = res["opencv-ippe-lm"]
-    from cutterpose.pose import pose_errors
+    from cutterpose.geometry.pose import pose_errors
 
     err = pose_errors(tr.R_cam_holder, tr.t_cam_holder_mm, R, t)
     good = ~err.failed

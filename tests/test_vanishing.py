@@ -1,15 +1,21 @@
-"""Initial pose from vanishing directions and contour area (cutterpose.vanishing)."""
+"""Initial pose from vanishing directions and contour area (cutterpose.solvers.vanishing)."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from cutterpose.camera import default_camera
 from cutterpose.errors import DegenerateInputError, InputError
-from cutterpose.holder import default_holder
-from cutterpose.pose import Pose, geodesic_deg, rotation_from_euler_deg
-from cutterpose.vanishing import MotionRange, initial_pose, initial_pose_paper, solve, solve_paper
+from cutterpose.geometry.camera import default_camera
+from cutterpose.geometry.holder import default_holder
+from cutterpose.geometry.pose import Pose, geodesic_deg, rotation_from_euler_deg
+from cutterpose.geometry.working_range import MotionRange
+from cutterpose.solvers.vanishing import (
+    initial_pose,
+    initial_pose_paper,
+    solve,
+    solve_paper,
+)
 
 CAM = default_camera("synthetic")
 HOLDER = default_holder()

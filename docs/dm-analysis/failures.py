@@ -17,10 +17,11 @@ from pathlib import Path
 import numpy as np
 
 from cutterpose.experiments.synthetic import generate_trials
-from cutterpose.holder import default_holder
-from cutterpose.matching import distance_image, distance_match, dm_score
-from cutterpose.pose import pose_errors
-from cutterpose.vanishing import initial_pose, pose_dof
+from cutterpose.geometry.holder import default_holder
+from cutterpose.geometry.pose import pose_errors
+from cutterpose.geometry.working_range import pose_dof
+from cutterpose.solvers.matching import distance_image, distance_match, dm_score
+from cutterpose.solvers.vanishing import initial_pose
 
 
 def main() -> None:

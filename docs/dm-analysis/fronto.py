@@ -18,9 +18,9 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from cutterpose.experiments.synthetic import generate_trials  # noqa: E402
-from cutterpose.holder import default_holder  # noqa: E402
-from cutterpose.pose import geodesic_deg  # noqa: E402
-from cutterpose.vanishing import solve, solve_paper  # noqa: E402
+from cutterpose.geometry.holder import default_holder  # noqa: E402
+from cutterpose.geometry.pose import geodesic_deg  # noqa: E402
+from cutterpose.solvers.vanishing import solve, solve_paper  # noqa: E402
 
 
 def main() -> None:

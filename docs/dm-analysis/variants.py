@@ -20,11 +20,12 @@ import cv2
 import numpy as np
 
 from cutterpose.experiments.synthetic import generate_trials
-from cutterpose.holder import default_holder
-from cutterpose.matching import _OFF2, _poses, _Scorer, distance_image, distance_match
+from cutterpose.geometry.holder import default_holder
+from cutterpose.geometry.pose import pose_errors
+from cutterpose.geometry.working_range import MotionRange
 from cutterpose.methods import get_method
-from cutterpose.pose import pose_errors
-from cutterpose.vanishing import MotionRange, initial_pose
+from cutterpose.solvers.matching import _OFF2, _poses, _Scorer, distance_image, distance_match
+from cutterpose.solvers.vanishing import initial_pose
 
 HOLDER = default_holder()
 VARIANTS = ("dm", "dm-precise", "dm-r2")

@@ -12,13 +12,14 @@ import os as _os
 for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
     _os.environ.setdefault(_var, "1")
 
-from .camera import Camera, DivisionCamera, OpenCVCamera, PinholeCamera, default_camera, load_camera
-from .estimate import PoseEstimate
-from .holder import Holder, default_holder, load_holder
-from .pose import Pose
+from .geometry.camera import Camera, DivisionCamera, OpenCVCamera, PinholeCamera, default_camera
+from .geometry.camera_files import load_camera, save_camera
+from .geometry.holder import Holder, default_holder, load_holder
+from .geometry.pose import Pose
+from .solvers.estimate import PoseEstimate
 
 __version__ = "0.1.0"
 
 __all__ = ["Camera", "PinholeCamera", "DivisionCamera", "OpenCVCamera", "load_camera",
-           "default_camera", "Holder", "load_holder", "default_holder", "Pose", "PoseEstimate",
-           "__version__"]
+           "save_camera", "default_camera", "Holder", "load_holder", "default_holder", "Pose",
+           "PoseEstimate", "__version__"]

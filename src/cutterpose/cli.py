@@ -97,7 +97,8 @@ def demo(out: str = typer.Option("results/demo", help="Output folder.")):
 # ---- section: measure, render, render-set, experiment images (issue 5) --------------------
 def _render_camera(spec: str | None):
     """``table1`` / ``synthetic`` (bundled cameras) or a camera file; default Table 1."""
-    from .camera import default_camera, load_camera
+    from .geometry.camera import default_camera
+    from .geometry.camera_files import load_camera
 
     if spec is None or spec in ("table1", "synthetic"):
         return default_camera(spec or "table1")
@@ -119,10 +120,10 @@ def render_cmd(
 ):
     """Render one realistic image of the holder at a pose."""
     from .errors import InputError
-    from .holder import load_holder
-    from .pose import Pose
-    from .render import preset as get_preset
-    from .render import render_holder, save_rendered
+    from .geometry.holder import load_holder
+    from .geometry.pose import Pose
+    from .render.analytic import preset as get_preset
+    from .render.analytic import render_holder, save_rendered
 
     try:
         dof = [float(x) for x in pose.split(",")]
@@ -155,8 +156,8 @@ def render_set_cmd(
     """Render an image set with its truth.json (PROTOCOL.md, exchange formats)."""
     from rich.progress import Progress
 
-    from .render import DEFAULT_MIX, render_set
-    from .render import preset as get_preset
+    from .render.analytic import DEFAULT_MIX, render_set
+    from .render.analytic import preset as get_preset
 
     mix = DEFAULT_MIX
     if preset is not None:
@@ -183,8 +184,8 @@ def measure_cmd(
     """Measure the holder's pose in one image (exit 3 when the pose is refused)."""
     import json as _json
 
-    from .features import load_image
-    from .holder import load_holder
+    from .geometry.holder import load_holder
+    from .image import load_image
     from .pipeline import measure
 
     cam = _render_camera(camera)
@@ -192,7 +193,7 @@ def measure_cmd(
     img = load_image(image)
     m = measure(img, cam, hol, method)
     if overlay:
-        from .holder import default_holder
+        from .geometry.holder import default_holder
         from .overlay import write_overlay
 
         write_overlay(img, m, cam, hol or default_holder(), overlay)
@@ -222,7 +223,7 @@ def experiment_images_cmd(
     from rich.progress import Progress
 
     from .experiments.images import run_images
-    from .features import FeatureParams
+    from .image import FeatureParams
     from .methods import parse_methods
 
     names = [m.name for m in parse_methods(methods)]
@@ -240,8 +241,8 @@ def experiment_images_cmd(
 def _plate_from_options(plate_file: str | None, grid: str | None, spacing_mm: float | None,
                         diameter_mm: float | None):
     """The plate from ``--plate plate.json`` or from ``--grid RxC --spacing-mm S``."""
+    from .calibration.plate import CirclePlate, load_plate
     from .errors import InputError
-    from .plate import CirclePlate, load_plate
 
     if plate_file is not None:
         if grid is not None or spacing_mm is not None:
@@ -279,9 +280,9 @@ def render_plate_cmd(
     import cv2
     import numpy as np
 
+    from .calibration.plate import render_plate, sample_plate_poses, save_plate
     from .errors import InputError
-    from .plate import render_plate, sample_plate_poses, save_plate
-    from .render import preset as get_preset
+    from .render.analytic import preset as get_preset
 
     plate = _plate_from_options(None, grid, spacing_mm, diameter_mm)
     settings = get_preset(preset)
@@ -334,8 +335,8 @@ def calibrate_cmd(
     import json
     from pathlib import Path
 
-    from .calibration import calibrate_images
-    from .camera_formats import convert_camera, detect_format, write_camera
+    from .calibration.intrinsics import calibrate_images
+    from .geometry.camera_files import convert_camera, detect_format, write_camera
 
     plate = _plate_from_options(plate_file, grid, spacing_mm, diameter_mm)
     paths = []
@@ -397,9 +398,14 @@ def camera_convert_cmd(
                                           "division model (default 3.45)."),
 ):
     """Convert a camera file between formats and models (says when it is approximate)."""
-    from .camera import load_camera
-    from .camera_formats import FORMATS, convert_camera, detect_format, write_camera
     from .errors import InputError
+    from .geometry.camera_files import (
+        FORMATS,
+        convert_camera,
+        detect_format,
+        load_camera,
+        write_camera,
+    )
 
     cam = load_camera(src)
     fmt = to or detect_format(dst, for_writing=True)

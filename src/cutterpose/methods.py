@@ -6,7 +6,7 @@ receives the detected corners in contour order but with an unknown start and dir
 not rely on their order.
 
 ``<name>+lm`` is any correspondence method followed by Levenberg-Marquardt on the pixel
-reprojection error (:mod:`cutterpose.pnp.refine`).
+reprojection error (:mod:`cutterpose.solvers.pnp.refine`).
 
 Entries are imported lazily so that ``import cutterpose`` stays light and worker processes resolve
 methods by name.
@@ -33,21 +33,21 @@ class Method:
 
 # name -> (module, attribute, needs_correspondences, description)
 _ENTRIES: dict[str, tuple[str, str, bool, str]] = {
-    "opencv-sqpnp": ("cutterpose.pnp.opencv_ref", "solve_sqpnp", True,
+    "opencv-sqpnp": ("cutterpose.solvers.pnp.opencv_ref", "solve_sqpnp", True,
                      "OpenCV SQPnP (reference)"),
-    "opencv-ippe-lm": ("cutterpose.pnp.opencv_ref", "solve_ippe_lm", True,
+    "opencv-ippe-lm": ("cutterpose.solvers.pnp.opencv_ref", "solve_ippe_lm", True,
                        "OpenCV IPPE + solvePnPRefineLM: the ML reference"),
-    "dlt": ("cutterpose.pnp.dlt", "solve", True, "DLT (homography for planar points)"),
-    "epnp": ("cutterpose.pnp.epnp", "solve", True, "EPnP (Lepetit et al. 2009)"),
-    "rpnp": ("cutterpose.pnp.rpnp", "solve", True, "RPnP (Li et al. 2012)"),
-    "aspnp": ("cutterpose.pnp.aspnp", "solve", True, "ASPnP (Zheng et al. 2013)"),
-    "opnp": ("cutterpose.pnp.opnp", "solve", True, "OPnP (Zheng et al. 2013)"),
-    "initial": ("cutterpose.vanishing", "solve", False,
+    "dlt": ("cutterpose.solvers.pnp.dlt", "solve", True, "DLT (homography for planar points)"),
+    "epnp": ("cutterpose.solvers.pnp.epnp", "solve", True, "EPnP (Lepetit et al. 2009)"),
+    "rpnp": ("cutterpose.solvers.pnp.rpnp", "solve", True, "RPnP (Li et al. 2012)"),
+    "aspnp": ("cutterpose.solvers.pnp.aspnp", "solve", True, "ASPnP (Zheng et al. 2013)"),
+    "opnp": ("cutterpose.solvers.pnp.opnp", "solve", True, "OPnP (Zheng et al. 2013)"),
+    "initial": ("cutterpose.solvers.vanishing", "solve", False,
                 "initial pose from vanishing points and contour area (paper 2.2)"),
-    "initial-paper": ("cutterpose.vanishing", "solve_paper", False,
+    "initial-paper": ("cutterpose.solvers.vanishing", "solve_paper", False,
                       "initial pose, the paper's image-plane vanishing-point median"),
-    "dm": ("cutterpose.matching", "solve_dm", False, "distance matching (paper 2.3)"),
-    "dm+": ("cutterpose.matching", "solve_dm_plus", False,
+    "dm": ("cutterpose.solvers.matching", "solve_dm", False, "distance matching (paper 2.3)"),
+    "dm+": ("cutterpose.solvers.matching", "solve_dm_plus", False,
             "distance matching + continuous correspondence-free refinement"),
 }
 
@@ -70,7 +70,7 @@ def get_method(name: str) -> Method:
         base = get_method(name[:-3])
         if not base.needs_correspondences:
             raise InputError(f"'+lm' needs a correspondence method; {base.name} has none")
-        refine = importlib.import_module("cutterpose.pnp.refine")
+        refine = importlib.import_module("cutterpose.solvers.pnp.refine")
         return Method(name, refine.with_refinement(base.solve, name), True,
                       base.description + " + LM refinement")
     if name not in _ENTRIES:

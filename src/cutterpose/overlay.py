@@ -18,9 +18,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from .camera import Camera
 from .errors import ImageError
-from .holder import Holder
+from .geometry.camera import Camera
+from .geometry.holder import Holder
 
 __all__ = ["draw_overlay", "write_overlay"]
 

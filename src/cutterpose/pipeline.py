@@ -1,6 +1,6 @@
 """From one image to a checked pose: :func:`measure`.
 
-Image processing (:mod:`cutterpose.features`, paper section 2.1) gives the 20 corners in
+Image processing (:mod:`cutterpose.image.features`, paper section 2.1) gives the 20 corners in
 contour order; a pose method (:mod:`cutterpose.methods`) turns them into a pose; the residuals
 give the pose's per-DOF standard deviations and a quality verdict that refuses, with the reason,
 a pose that should not be used.
@@ -21,7 +21,8 @@ their Jacobian with respect to ``(alpha, beta, gamma, X, Y, Z)``,
     s^2 = |r|^2 / (40 - 6),        Cov = s^2 (J^T J)^-1,        std = sqrt(diag Cov).
 
 Convention:
-    Pose as in :mod:`cutterpose.pose` (holder in camera frame, mm, Z-Y-X Euler angles in deg).
+    Pose as in :mod:`cutterpose.geometry.pose` (holder in camera frame, mm, Z-Y-X Euler angles in
+    deg).
     Pixels: ``corners_px`` are observed (distorted) image pixels; residuals are in ideal pixels.
 """
 
@@ -35,13 +36,14 @@ from pathlib import Path
 
 import numpy as np
 
-from .camera import Camera, default_camera
 from .errors import CutterposeError, FeatureError, ImageError
-from .estimate import PoseEstimate
-from .features import FeatureParams, Features, detect_features, load_image
-from .holder import Holder, default_holder
+from .geometry.camera import Camera, default_camera
+from .geometry.holder import Holder, default_holder
+from .geometry.pose import Pose, pixel_jacobian, rotation_from_euler_deg
+from .geometry.working_range import MotionRange
+from .image import FeatureParams, Features, detect_features, load_image
 from .methods import get_method
-from .pose import Pose, pixel_jacobian, rotation_from_euler_deg
+from .solvers.estimate import PoseEstimate
 
 __all__ = ["QualityLimits", "Quality", "Measurement", "measure", "measure_features",
            "order_for_model", "pose_std", "demo", "DOF_NAMES", "edge_wear_effect"]
@@ -216,7 +218,7 @@ def edge_wear_effect(pose: Pose, features: Features, camera: Camera, holder: Hol
     # wear acts on the whole outline: the median offset, moved uniformly (one line darkened by
     # an occluder or a stain beside it is not wear, and the corner checks see local defects)
     off = np.full(len(off), float(np.nanmedian(off)))
-    from .edges import intersect_consecutive
+    from .image.edges import intersect_consecutive
 
     L = np.array(features.lines_ideal, float)
     # moving the line by off along the inward normal n: c' = c - off (a, b) . n
@@ -264,10 +266,10 @@ def _solve(method: str, corners_px: np.ndarray, camera: Camera, holder: Holder,
         return m.solve(order_for_model(corners_px, camera, holder), camera, holder)
     if method in ("dm", "dm+"):
         # the registered dm searches the synthetic range; images come from the real rig's
-        from . import matching, vanishing
+        from .solvers import matching, vanishing
 
         t0 = time.perf_counter()
-        rng = vanishing.MotionRange(center_dof=limits.range_center_dof,
+        rng = MotionRange(center_dof=limits.range_center_dof,
                                     half_width_dof=limits.range_half_width_dof)
         init = vanishing.initial_pose(corners_px, camera, holder)
         if not init:
@@ -284,7 +286,7 @@ def ambiguity_ratio(est: PoseEstimate, corners_ideal_px, camera: Camera, holder:
                     min_rotation_deg: float = 1.0) -> float:
     """RMS residual of the best pose over that of the best *different* candidate (rotation
     at least ``min_rotation_deg`` away; the planar two-fold ambiguity); NaN without one."""
-    from .pose import geodesic_deg
+    from .geometry.pose import geodesic_deg
 
     if not est or not est.candidates:
         return math.nan
@@ -435,7 +437,7 @@ def demo(out_dir, method: str = "dm+", seed: int = 7, echo=print) -> Measurement
     import cv2
 
     from .overlay import write_overlay
-    from .render import render_holder
+    from .render.analytic import render_holder
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)

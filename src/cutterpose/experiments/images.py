@@ -1,7 +1,7 @@
 """The real-image experiment (paper section 3.2, Table 2) on an image set.
 
 An image set is a folder with ``truth.json`` (PROTOCOL.md, exchange formats). Each image goes
-through the image processing once (:func:`cutterpose.features.detect_features`); every method
+through the image processing once (:func:`cutterpose.image.features.detect_features`); every method
 then solves from the same corners (:func:`cutterpose.pipeline.measure_features`): the
 correspondence-free methods in contour order, the PnP methods after the contour-order
 assignment of :func:`cutterpose.pipeline.order_for_model`. A method whose pose the quality
@@ -27,10 +27,10 @@ from pathlib import Path
 
 import numpy as np
 
-from ..camera import camera_from_dict
 from ..errors import CutterposeError, InputError
-from ..features import FeatureParams, detect_features, load_image
-from ..holder import Holder, default_holder, holder_from_dict
+from ..geometry.camera import camera_from_dict
+from ..geometry.holder import Holder, default_holder, holder_from_dict
+from ..image import FeatureParams, detect_features, load_image
 from ..pipeline import measure_features
 from .report import summarize, trial_rows, write_summary, write_trials_csv
 
@@ -104,7 +104,7 @@ def _one_image(args):
         true_px = np.asarray(entry["corners_px"], float)
         info["rms_refined_px"] = corner_rms(feats.corners_px, true_px)
         # the paper's corners: the thresholded contour's lines, no gradient refinement
-        from ..features import intersect_consecutive
+        from ..image.edges import intersect_consecutive
         info["rms_threshold_px"] = corner_rms(
             camera.distort_px(intersect_consecutive(feats.lines_threshold_ideal)), true_px)
     for m in methods:

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..pose import pose_errors
+from ..geometry.pose import pose_errors
 
 TRIAL_COLUMNS = ["trial", "sigma_px", "method", "alpha_err_deg", "beta_err_deg", "gamma_err_deg",
                  "X_err_mm", "Y_err_mm", "Z_err_mm", "rot_err_deg", "trans_err_mm", "failed",

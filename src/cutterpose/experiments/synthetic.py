@@ -1,7 +1,8 @@
 """The synthetic noise sweep of the seed paper (section 3.1, Fig. 5), run as ``PROTOCOL.md`` says.
 
 Convention:
-    Poses follow :mod:`cutterpose.pose` (``x_cam = R_cam_holder x_holder + t_cam_holder_mm``,
+    Poses follow :mod:`cutterpose.geometry.pose` (``x_cam = R_cam_holder x_holder +
+    t_cam_holder_mm``,
     ``R = Rz(gamma) Ry(beta) Rx(alpha)``). A trial draws alpha, beta, gamma uniformly in
     [-60, 60] deg and X, Y, Z - 600 uniformly in [-90, 90] mm, projects the holder's 20 corners
     through the pinhole camera of ``camera_synthetic.json``, redraws it if a corner leaves the
@@ -29,11 +30,11 @@ from pathlib import Path
 
 import numpy as np
 
-from ..camera import Camera, PinholeCamera, default_camera
 from ..errors import InputError
-from ..holder import Holder, default_holder, holder_from_dict
+from ..geometry.camera import Camera, PinholeCamera, default_camera
+from ..geometry.holder import Holder, default_holder, holder_from_dict
+from ..geometry.pose import pixel_jacobian, rotation_from_euler_deg
 from ..methods import Method, get_method
-from ..pose import pixel_jacobian, rotation_from_euler_deg
 from .report import summarize, trial_rows, write_summary, write_trials_csv
 
 ANGLE_RANGE_DEG = 60.0

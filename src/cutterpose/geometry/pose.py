@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from .errors import InputError
+from ..errors import InputError
 
 #: Gross-failure thresholds of the protocol.
 FAIL_ROT_DEG = 2.0

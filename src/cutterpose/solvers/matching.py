@@ -22,7 +22,8 @@ at 5 px (200 trials per level, docs/notes/dm.md). Read bilinearly (the default),
 reaches the ML accuracy from 2.5 px on.
 
 **Search.** Coarse to fine with steps 5, 1, 0.5, 0.2, 0.1 (mm and deg) over all six DOFs, within
-the known motion range (:class:`~cutterpose.vanishing.MotionRange`). At each level the ``3^6``
+the known motion range (:class:`~cutterpose.geometry.working_range.MotionRange`). At each level the
+``3^6``
 neighbours of the current pose are scored and the best taken until the centre is best (a local
 search; ties keep the centre), so the coarse level can walk several steps from the start.
 Options: ``n_starts`` > 1 searches from the top initial candidates, ``coarse_radius`` = 2 first
@@ -47,7 +48,8 @@ corner projecting onto one detected corner. The assignment is therefore one-to-o
 the motion range.
 
 Convention:
-    Pose as in :mod:`cutterpose.pose` (``x_cam = R @ x_holder + t``, ``R = Rz Ry Rx``, mm and
+    Pose as in :mod:`cutterpose.geometry.pose` (``x_cam = R @ x_holder + t``, ``R = Rz Ry Rx``, mm
+    and
     deg). The distance image lives in observed (distorted) pixels like the detected corners;
     dm+ works in ideal pixels (``camera.undistort_px``).
 
@@ -69,12 +71,13 @@ from scipy.optimize import linear_sum_assignment
 from scipy.spatial.distance import cdist
 from scipy.spatial.transform import Rotation
 
-from .camera import Camera, PinholeCamera
-from .errors import InputError
+from ..errors import InputError
+from ..geometry.camera import Camera, PinholeCamera
+from ..geometry.holder import Holder
+from ..geometry.pose import rotation_from_euler_deg
+from ..geometry.working_range import MotionRange, PoseOutOfRangeError, pose_dof
 from .estimate import PoseEstimate
-from .holder import Holder
-from .pose import rotation_from_euler_deg
-from .vanishing import MotionRange, PoseOutOfRangeError, check_contour, initial_pose, pose_dof
+from .vanishing import check_contour, initial_pose
 
 __all__ = ["DistanceImage", "distance_image", "dm_score", "TemplateLibrary", "distance_match",
            "refine_continuous", "solve_dm", "solve_dm_plus", "PAPER_STEPS"]
@@ -328,7 +331,7 @@ def distance_match(points_px, camera: Camera, holder: Holder, initial,
     Raises
     ------
     InputError, DegenerateInputError
-        Bad corners (see :func:`~cutterpose.vanishing.check_contour`).
+        Bad corners (see :func:`~cutterpose.solvers.vanishing.check_contour`).
     PoseOutOfRangeError
         Every initial pose lies outside the motion range.
     """

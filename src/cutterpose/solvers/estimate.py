@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .pose import Pose
+from ..geometry.pose import Pose
 
 __all__ = ["PoseEstimate"]
 

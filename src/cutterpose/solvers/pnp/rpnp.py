@@ -21,9 +21,9 @@
 6. **Final alignment**: ``theta = atan2(s, c)`` (``c^2 + s^2 = 1`` imposed), ``T`` refitted
    for that rotation, the camera-frame points moved onto their rays ``X_i = b_i ||Xt_i||`` and
    ``(R, t)`` from the rigid alignment of ``P`` to them (AL-ok,
-   :func:`~cutterpose.pnp.base.align_rigid`).
+   :func:`~cutterpose.solvers.pnp.base.align_rigid`).
 
-Every minimum gives a candidate; :func:`~cutterpose.pnp.base.make_solver` selects by
+Every minimum gives a candidate; :func:`~cutterpose.solvers.pnp.base.make_solver` selects by
 reprojection error, so the planar two-fold ambiguity shows up in the ambiguity ratio when ``F``
 has both minima.
 
@@ -269,7 +269,7 @@ def _eliminate_translation(O: np.ndarray, E: np.ndarray) -> tuple[np.ndarray, np
     ``X_i = M Pa_i + T`` and the rows ``u X3 - X1``, ``v X3 - X2`` of point i are
     ``kron(a_i, B_i) (vec M, T)`` with ``a_i = (Pa_i, 1)`` and ``B_i = [[-1, 0, u], [0, -1,
     v]]``: their 12x12 normal matrix comes from the model's moments ``O`` with the image weights
-    ``E`` (:func:`~cutterpose.pnp.base.kron_normal`) instead of from the 2n rows.
+    ``E`` (:func:`~cutterpose.solvers.pnp.base.kron_normal`) instead of from the 2n rows.
 
     Returns
     -------

@@ -26,16 +26,14 @@ from __future__ import annotations
 import json
 import math
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 
-from .errors import CameraFileError, InputError
-from .jsonfile import read_json
+from ..errors import CameraFileError, InputError
 
 __all__ = [
     "Camera", "PinholeCamera", "DivisionCamera", "OpenCVCamera",
-    "load_camera", "save_camera", "camera_from_dict", "default_camera",
+    "camera_from_dict", "default_camera",
 ]
 
 
@@ -148,7 +146,7 @@ class PinholeCamera(Camera):
     def __post_init__(self):
         _check_positive_finite({"fx": self.fx, "fy": self.fy}, "pinhole camera")
         _check_finite({"cx": self.cx, "cy": self.cy, "skew": self.skew}, "pinhole camera")
-        self.image_size_px = _check_size(self.image_size_px)
+        self.image_size_px = check_image_size(self.image_size_px)
 
     @classmethod
     def from_matrix(cls, K, image_size_px, name: str = "") -> PinholeCamera:
@@ -212,7 +210,7 @@ class DivisionCamera(Camera):
         cx, cy = _check_pair(self.principal_point_px, "principal_point_px")
         self.pixel_size_m = (sx, sy)
         self.principal_point_px = (cx, cy)
-        self.image_size_px = _check_size(self.image_size_px)
+        self.image_size_px = check_image_size(self.image_size_px)
 
     @property
     def K(self) -> np.ndarray:
@@ -291,7 +289,7 @@ class OpenCVCamera(Camera):
                 f"k6]]); got {d.size} (thin-prism and tilt terms are not supported)")
         self.camera_matrix = K
         self.dist_coeffs = d
-        self.image_size_px = _check_size(self.image_size_px)
+        self.image_size_px = check_image_size(self.image_size_px)
 
     @property
     def K(self) -> np.ndarray:
@@ -387,7 +385,7 @@ def _check_pair(v, field: str, positive: bool = False):
     return a, b
 
 
-def _check_size(v):
+def check_image_size(v):
     try:
         w, h = v
         if isinstance(w, bool) or isinstance(h, bool) or int(w) != w or int(h) != h:
@@ -423,15 +421,15 @@ def camera_from_dict(d: dict, where: str = "camera") -> Camera:
     name = str(d.get("name", ""))
     if model == "pinhole":
         if "camera_matrix" in d:
-            K = _matrix(d["camera_matrix"], "camera_matrix", where)
-            return PinholeCamera.from_matrix(K, _check_size(size), name=name)
+            K = matrix_field(d["camera_matrix"], "camera_matrix", where)
+            return PinholeCamera.from_matrix(K, check_image_size(size), name=name)
         f = _number(_require(d, "focal_length_m", where), "focal_length_m", where)
         sx, sy = _check_pair(_require(d, "pixel_size_m", where), "pixel_size_m", positive=True)
         cx, cy = _check_pair(_require(d, "principal_point_px", where), "principal_point_px")
         if d.get("distortion") not in (None, {}, []):
             raise CameraFileError(f"{where}: a pinhole camera has no 'distortion'; use model "
                                   "'division' or 'opencv'")
-        return PinholeCamera(f / sx, f / sy, cx, cy, _check_size(size), name=name)
+        return PinholeCamera(f / sx, f / sy, cx, cy, check_image_size(size), name=name)
     if model == "division":
         return DivisionCamera(
             focal_length_m=_number(_require(d, "focal_length_m", where), "focal_length_m", where),
@@ -440,7 +438,7 @@ def camera_from_dict(d: dict, where: str = "camera") -> Camera:
             principal_point_px=_require(d, "principal_point_px", where),
             image_size_px=size, name=name)
     if model == "opencv":
-        K = _matrix(_require(d, "camera_matrix", where), "camera_matrix", where)
+        K = matrix_field(_require(d, "camera_matrix", where), "camera_matrix", where)
         dist = _require(d, "distortion_coefficients", where)
         try:
             dist = np.asarray(dist, float).ravel()
@@ -460,7 +458,7 @@ def _number(v, field: str, where: str) -> float:
     return float(v)
 
 
-def _matrix(v, field: str, where: str) -> np.ndarray:
+def matrix_field(v, field: str, where: str) -> np.ndarray:
     try:
         K = np.asarray(v, float)
     except (TypeError, ValueError):
@@ -470,101 +468,6 @@ def _matrix(v, field: str, where: str) -> np.ndarray:
     if K.shape != (3, 3) or not np.all(np.isfinite(K)):
         raise CameraFileError(f"{where}: field '{field}' must be a finite 3x3 matrix")
     return K
-
-
-def _read_opencv_yaml(path: Path) -> Camera:
-    import cv2
-
-    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
-    if not fs.isOpened():
-        raise CameraFileError(f"{path}: not a readable OpenCV FileStorage file")
-    try:
-        where = str(path)
-
-        def node(key):
-            n = fs.getNode(key)
-            if n.empty():
-                raise CameraFileError(f"{where}: missing field '{key}'")
-            return n
-
-        K = node("camera_matrix").mat()
-        if K is None:
-            raise CameraFileError(f"{where}: field 'camera_matrix' is not a matrix")
-        dist = node("distortion_coefficients").mat()
-        if dist is None:
-            raise CameraFileError(f"{where}: field 'distortion_coefficients' is not a matrix")
-        w = node("image_width").real()
-        h = node("image_height").real()
-        name = fs.getNode("name").string() if not fs.getNode("name").empty() else ""
-    finally:
-        fs.release()
-    K = _matrix(K, "camera_matrix", where)
-    dist = np.asarray(dist, float).ravel()
-    if dist.size == 0 or np.allclose(dist, 0):
-        return PinholeCamera.from_matrix(K, _check_size((w, h)), name=name)
-    return OpenCVCamera(K, dist, (w, h), name=name)
-
-
-def _write_opencv_yaml(cam: Camera, path: Path) -> None:
-    import cv2
-
-    if isinstance(cam, DivisionCamera):
-        raise CameraFileError(
-            "OpenCV YAML cannot hold the division model exactly; convert it to the opencv "
-            "model first (cutterpose camera convert)")
-    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
-    fs.write("image_width", int(cam.image_size_px[0]))
-    fs.write("image_height", int(cam.image_size_px[1]))
-    fs.write("camera_matrix", cam.K)
-    dist = cam.dist_coeffs if isinstance(cam, OpenCVCamera) else np.zeros(5)
-    fs.write("distortion_coefficients", np.asarray(dist, float).reshape(1, -1))
-    if cam.name:
-        fs.write("name", cam.name)
-    fs.release()
-
-
-def load_camera(path) -> Camera:
-    """Read a camera file: JSON (``.json``) or OpenCV YAML (``.yml``/``.yaml``/``.xml``); a HALCON
-    camera parameter file (``.dat``/``.cal`` or ``ParGroup`` content) or a ROS camera_info YAML
-    (``distortion_model`` key) is read by :mod:`cutterpose.camera_formats`.
-
-    Raises
-    ------
-    CameraFileError
-        If the file is missing or malformed; the message names the field.
-    """
-    path = Path(path)
-    if not path.is_file():
-        raise CameraFileError(f"{path}: camera file not found")
-    suffix = path.suffix.lower()
-    from . import camera_formats  # HALCON .dat and ROS camera_info (issue 6); no import cycle
-
-    fmt = camera_formats.sniff_format(path)
-    if fmt == "halcon":
-        return camera_formats.read_halcon(path)
-    if fmt == "ros":
-        return camera_formats.read_ros(path)
-    if suffix in (".yml", ".yaml", ".xml"):
-        return _read_opencv_yaml(path)
-    return camera_from_dict(read_json(path, CameraFileError, "camera file"), where=str(path))
-
-
-def save_camera(cam: Camera, path) -> None:
-    """Write a camera as JSON (``.json``) or OpenCV YAML (``.yml``/``.yaml``/``.xml``); HALCON
-    (``.dat``/``.cal``) and ROS camera_info (``.ros.yaml``, ``*camera_info*.yaml``) via
-    :mod:`cutterpose.camera_formats`."""
-    path = Path(path)
-    from . import camera_formats
-
-    fmt = camera_formats.sniff_format(path, for_writing=True)
-    if fmt == "halcon":
-        camera_formats.write_halcon(cam, path)
-    elif fmt == "ros":
-        camera_formats.write_ros(cam, path)
-    elif path.suffix.lower() in (".yml", ".yaml", ".xml"):
-        _write_opencv_yaml(cam, path)
-    else:
-        path.write_text(json.dumps(cam.to_dict(), indent=2) + "\n")
 
 
 def default_camera(which: str = "table1") -> Camera:

@@ -10,7 +10,7 @@ point outwards; :func:`edge_wear` measures the darkening and the offset it impli
 
 Convention:
     Lines are homogeneous ``(a, b, c)`` with ``a u + b v + c = 0`` and ``(a, b)`` a unit normal,
-    in ideal (undistorted) pixels; see :mod:`cutterpose.features`.
+    in ideal (undistorted) pixels; see :mod:`cutterpose.image.features`.
 """
 
 from __future__ import annotations
@@ -21,10 +21,10 @@ import cv2
 import numpy as np
 from scipy.ndimage import gaussian_filter1d
 
-from .camera import Camera
+from ..geometry.camera import Camera
 
 if TYPE_CHECKING:
-    from .features import FeatureParams
+    from .params import FeatureParams
 
 def fit_line(p: np.ndarray, w: np.ndarray | None = None):
     """Total least squares line: centroid, unit direction, unit normal."""

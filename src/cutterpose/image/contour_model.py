@@ -3,11 +3,11 @@
 When the paper's segmentation does not give 20 consistent segments (wear, an occluder, a bad
 threshold), the holder's pocket outline is fitted to the thresholded contour by a homography of
 the holder plane, refined by repeated nearest-edge matching; the 20 edges then go through the
-same gradient refinement as the paper's lines (:mod:`cutterpose.edges`). An edge supported
+same gradient refinement as the paper's lines (:mod:`cutterpose.image.edges`). An edge supported
 along too little of its length is refused.
 
 Convention:
-    Ideal pixels and homogeneous lines as in :mod:`cutterpose.features`.
+    Ideal pixels and homogeneous lines as in :mod:`cutterpose.image.features`.
 """
 
 from __future__ import annotations
@@ -17,15 +17,15 @@ from typing import TYPE_CHECKING
 import cv2
 import numpy as np
 
-from .camera import Camera
+from ..errors import FeatureError
+from ..geometry.camera import Camera
+from ..geometry.holder import Holder
+from ..geometry.pose import Pose
 from .edges import line_from
-from .errors import FeatureError
-from .features import Segment, _signed_area, _where
-from .holder import Holder
-from .pose import Pose
+from .params import Segment, signed_area, where_px
 
 if TYPE_CHECKING:
-    from .features import FeatureParams
+    from .params import FeatureParams
 
 
 # ------------------------------------------------------------------------------------------
@@ -166,7 +166,7 @@ def model_features(contours: list, sub, roi, camera: Camera, holder: Holder,
     if score < 0.5:
         raise FeatureError(f"only {100 * score:.0f} % of the pocket's outline found on the "
                            f"best contour (threshold {level}): holder hidden or not in view")
-    sign = np.sign(_signed_area(C))
+    sign = np.sign(signed_area(C))
     segs, lines0, inward, spans = [], np.zeros((n, 3)), np.zeros((n, 2)), []
     margin = params.refine_half_width_px
     for k in range(n):
@@ -197,6 +197,6 @@ def check_edge_support(lines, edges, spans, camera, params):
         if support < min_fraction:
             mid = camera.distort_px((sp[2] + 0.5 * (sp[0] + sp[1]) * sp[3])[None])[0]
             raise FeatureError(
-                f"edge {k} near {_where(mid)} px: gradient edge found along only "
+                f"edge {k} near {where_px(mid)} px: gradient edge found along only "
                 f"{100 * support:.0f} % of it (< {100 * min_fraction:.0f} %): occluded or "
                 "damaged")

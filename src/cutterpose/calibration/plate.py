@@ -31,10 +31,10 @@ from pathlib import Path
 
 import numpy as np
 
-from .camera import Camera
-from .errors import InputError, ModelFileError
-from .jsonfile import read_json
-from .pose import Pose
+from ..errors import InputError, ModelFileError
+from ..geometry.camera import Camera
+from ..geometry.jsonfile import read_json
+from ..geometry.pose import Pose
 
 __all__ = ["CirclePlate", "load_plate", "save_plate", "render_plate", "sample_plate_poses",
            "apply_sensor_effects", "ellipse_center_bias_px"]
@@ -209,11 +209,12 @@ def apply_sensor_effects(image: np.ndarray, rng: np.random.Generator,
                          settings=None) -> np.ndarray:
     """Defocus blur, shot and read noise and 8-bit quantisation of a float image in DN.
 
-    The holder renderer's own helpers (:func:`cutterpose.render.defocus`,
-    :func:`cutterpose.render.add_sensor_noise`) with a :class:`cutterpose.render.RenderSettings`
+    The holder renderer's own helpers (:func:`cutterpose.render.analytic.defocus`,
+    :func:`cutterpose.render.analytic.add_sensor_noise`) with a
+    :class:`cutterpose.render.analytic.RenderSettings`
     (default: the ``easy`` preset), so plate and holder images share one sensor model.
     """
-    from .render import add_sensor_noise, defocus, preset
+    from ..render.analytic import add_sensor_noise, defocus, preset
 
     s = settings if settings is not None else preset("easy")
     return add_sensor_noise(defocus(image, s.defocus_sigma_px, s.defocus_kernel), s, rng)
@@ -230,7 +231,7 @@ def render_plate(camera: Camera, pose: Pose, plate: CirclePlate | None = None, *
     :meth:`CirclePlate.darkness` is evaluated with a footprint from the local Jacobian of that
     map. Perspective and distortion are therefore exact, circles appear as the true (not
     ellipse-fitted) images. Pixels off the plate show ``background``. ``settings`` (a
-    :class:`cutterpose.render.RenderSettings`, e.g. ``render.preset("blurred")``; default
+    :class:`cutterpose.render.analytic.RenderSettings`, e.g. ``render.preset("blurred")``; default
     ``easy``) sets defocus and sensor noise exactly as for the holder images.
 
     Returns

@@ -18,14 +18,15 @@ lock anywhere near the solution) and ``t``. With ``Y_i = Exp(w) R0 P_i`` and ``X
 
 Every candidate of the base solver is refined (so the two planar minima both survive when the base
 solver found both), near-duplicates after refinement are merged, and
-:func:`~cutterpose.pnp.base.select` picks by reprojection error again, which keeps the ambiguity
+:func:`~cutterpose.solvers.pnp.base.select` picks by reprojection error again, which keeps the
+ambiguity
 ratio meaningful. For a planar model one more start is added: the best candidate's plane tilted
 to its mirror image about the line of sight to the plane's centroid (the exact ambiguity under
 weak perspective, e.g. Schweighofer & Pinz, PAMI 2006), so that the second minimum of the
 planar ambiguity is searched for even when the base solver returned a single pose.
 
 Convention:
-    ``R_cam_holder``, ``t_cam_holder_mm`` as in :mod:`cutterpose.pose`; residuals in ideal
+    ``R_cam_holder``, ``t_cam_holder_mm`` as in :mod:`cutterpose.geometry.pose`; residuals in ideal
     pixels; ``points_px`` observed (distorted) pixels as everywhere.
 """
 

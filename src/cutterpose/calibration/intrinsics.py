@@ -14,12 +14,14 @@ Pipeline:
        The OpenCV model goes through ``cv2.calibrateCameraExtended`` instead.
     4. Perspective bias of circle centres (beyond the paper): the centre of a circle's image
        ellipse is not the image of its centre. With the current estimate, the offset is
-       predicted per circle (:func:`cutterpose.plate.ellipse_center_bias_px`), subtracted from
+       predicted per circle (:func:`cutterpose.calibration.plate.ellipse_center_bias_px`),
+       subtracted from
        the measured ellipse centres, and the calibration is repeated (2 rounds are enough).
 
 Convention:
-    Plate frame and point order: :mod:`cutterpose.plate`. Poses are ``x_cam = R @ x_plate + t``
-    in mm. Division model as :class:`cutterpose.camera.DivisionCamera` (HALCON
+    Plate frame and point order: :mod:`cutterpose.calibration.plate`. Poses are ``x_cam = R @
+    x_plate + t``
+    in mm. Division model as :class:`cutterpose.geometry.camera.DivisionCamera` (HALCON
     ``area_scan_division``): ``f`` [m], ``kappa`` [1/m^2], pixel pitch ``(sx, sy)`` [m], principal
     point [px]. Only ``f / sx`` and ``f / sy`` are observable, so, as HALCON does, the pixel
     height ``sy`` is fixed (the sensor's datasheet value) and ``f``, ``kappa``, ``sx``, ``cx``,
@@ -44,10 +46,10 @@ from scipy.optimize import least_squares
 from scipy.sparse import lil_matrix
 from scipy.spatial.transform import Rotation
 
-from .camera import Camera, DivisionCamera, OpenCVCamera
-from .errors import DegenerateInputError, FeatureError, ImageError, InputError
+from ..errors import DegenerateInputError, FeatureError, ImageError, InputError
+from ..geometry.camera import Camera, DivisionCamera, OpenCVCamera
+from ..geometry.pose import Pose
 from .plate import CirclePlate, ellipse_center_bias_px
-from .pose import Pose
 
 __all__ = ["PlateDetection", "detect_plate", "zhang_init", "refine_division", "calibrate",
            "calibrate_images", "CalibrationResult"]
@@ -372,7 +374,7 @@ def _poses_from_homographies(K, Hs):
         if A[2, 2] * lam < 0:  # plate in front of the camera: t_z > 0
             lam = -lam
         r1, r2, t = lam * A[:, 0], lam * A[:, 1], lam * A[:, 2]
-        from .pose import nearest_rotation
+        from ..geometry.pose import nearest_rotation
 
         Rs.append(nearest_rotation(np.stack([r1, r2, np.cross(r1, r2)], axis=1)))
         ts.append(t)

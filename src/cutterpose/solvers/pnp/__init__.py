@@ -1,5 +1,5 @@
 """PnP solvers with known 2D-3D correspondences, one module per solver.
 
 Every solver has the signature ``solve(points_px, camera, model) -> PoseEstimate``; see
-:mod:`cutterpose.pnp.base`.
+:mod:`cutterpose.solvers.pnp.base`.
 """

@@ -1,6 +1,6 @@
 """DLT: the homography for planar points, the 12-unknown projection-matrix DLT otherwise.
 
-Planar points (singular-value test of :func:`~cutterpose.pnp.base.is_planar`) are moved into
+Planar points (singular-value test of :func:`~cutterpose.solvers.pnp.base.is_planar`) are moved into
 their plane frame (``W (P - Pbar)`` has zero third coordinate, notes 6.3), then the homography
 ``H ~ [r1 r2 t]`` with ``m ~ H (X, Y, 1)^T`` is found by the normalised DLT (Hartley &
 Zisserman, 2nd ed., Alg. 4.2): both point sets are centred and scaled to an RMS distance of
@@ -42,7 +42,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..errors import DegenerateInputError
+from ...errors import DegenerateInputError
 from .base import (
     Candidate,
     is_planar,
@@ -126,7 +126,7 @@ def homography_pose(Q2: np.ndarray, m: np.ndarray, model=None) -> Candidate:
     """Pose of plane points ``Q2`` (n, 2; plane ``Z = 0``) from the normalised homography.
 
     ``h`` is the eigenvector of the least eigenvalue of ``A^T A`` (built from its structure,
-    :func:`~cutterpose.pnp.base.kron_normal`): the same null vector as the SVD of ``A``, and
+    :func:`~cutterpose.solvers.pnp.base.kron_normal`): the same null vector as the SVD of ``A``, and
     after Hartley normalisation ``A`` is well conditioned, so squaring its condition number
     costs nothing measurable (notes, speed section). ``model`` is the cached
     :func:`_homography_model` of ``Q2``."""

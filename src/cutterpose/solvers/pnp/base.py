@@ -9,14 +9,15 @@ on normalised image coordinates ``m = K^-1 ideal_px`` (undistorted), and wraps i
 
     solve(points_px, camera, model) -> PoseEstimate
 
-``model`` is a :class:`~cutterpose.holder.Holder` (its 20 corners, in model order) or any
+``model`` is a :class:`~cutterpose.geometry.holder.Holder` (its 20 corners, in model order) or any
 ``(n, 3)`` array of object points (non-planar sets included). The wrapper
 
 * rejects bad input with typed errors (shape mismatch, NaN/inf, too few points, collinear points);
 * drops candidates that are not finite or put a point behind the camera;
 * picks the candidate with the least RMS reprojection error (ideal pixels) and reports the
   ratio best / second-best as ``ambiguity_ratio``;
-* returns a falsy :class:`~cutterpose.estimate.PoseEstimate` with the reason when nothing is left.
+* returns a falsy :class:`~cutterpose.solvers.estimate.PoseEstimate` with the reason when nothing
+is left.
 """
 
 from __future__ import annotations
@@ -29,10 +30,10 @@ import numpy as np
 from scipy.linalg.lapack import dgesdd as _dgesdd
 from scipy.linalg.lapack import dsyevr as _dsyevr
 
-from ..camera import Camera
-from ..errors import DegenerateInputError, InputError
+from ...errors import DegenerateInputError, InputError
+from ...geometry.camera import Camera
+from ...geometry.holder import Holder
 from ..estimate import PoseEstimate
-from ..holder import Holder
 
 __all__ = ["model_points", "model_cache", "check_correspondences", "reprojection_rms", "select",
            "make_solver", "is_planar", "plane_frame", "align_rigid", "align_rigid_many",

@@ -1,4 +1,4 @@
-"""Camera files users already have (HALCON, ROS) and conversion between camera models.
+"""Camera files: reading and writing every format users have, and conversion between models.
 
 Formats:
     ``halcon``  HALCON camera parameter file as written by ``write_cam_par`` for the
@@ -11,11 +11,12 @@ Formats:
                 / ``rectification_matrix`` / ``projection_matrix`` as ``{rows, cols, data}``,
                 ``distortion_model: plumb_bob`` (k1 k2 p1 p2 k3) or ``rational_polynomial``
                 (k1 k2 p1 p2 k3 k4 k5 k6).
-    ``opencv``  OpenCV FileStorage YAML/XML, ``json`` the project's JSON (both in camera.py).
+    ``opencv``  OpenCV FileStorage YAML/XML; ``json`` the project's JSON (:func:`camera_from_dict`).
 
 Convention:
     HALCON's Focus [m], Kappa [1/m^2], Sx, Sy [m] and Cx, Cy [px] are exactly the fields of
-    :class:`cutterpose.camera.DivisionCamera` (HALCON's pixel coordinates, like ours, put the
+    :class:`cutterpose.geometry.camera.DivisionCamera` (HALCON's pixel coordinates, like ours, put
+    the
     centre of the top-left pixel at (0, 0); Cx is the column). The conversion between the
     division model and OpenCV's radial polynomial is not exact: it is fitted over the image
     (see :func:`convert_camera`) and reported with its worst pixel error.
@@ -28,17 +29,27 @@ References:
 
 from __future__ import annotations
 
+import json
 import re
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from .camera import Camera, DivisionCamera, OpenCVCamera, PinholeCamera
-from .errors import CameraFileError, InputError
+from ..errors import CameraFileError, InputError
+from .camera import (
+    Camera,
+    DivisionCamera,
+    OpenCVCamera,
+    PinholeCamera,
+    camera_from_dict,
+    check_image_size,
+    matrix_field,
+)
+from .jsonfile import read_json
 
 __all__ = ["read_halcon", "write_halcon", "read_ros", "write_ros", "detect_format", "sniff_format",
-           "write_camera",
+           "write_camera", "load_camera", "save_camera",
            "FORMATS", "convert_camera", "Conversion", "to_division", "to_opencv"]
 
 FORMATS = ("json", "opencv", "ros", "halcon")
@@ -259,7 +270,6 @@ def write_camera(cam: Camera, path, fmt: str | None = None) -> None:
     The camera must fit the format (see :func:`convert_camera`)."""
     import json
 
-    from .camera import _write_opencv_yaml
 
     fmt = fmt or detect_format(path, for_writing=True)
     if fmt == "halcon":
@@ -409,3 +419,94 @@ def convert_camera(cam: Camera, target_format: str,
             return Conversion(cam, True)
         return to_opencv(cam)
     raise InputError(f"unknown camera format {target_format!r}; choose from {FORMATS}")
+
+
+def _read_opencv_yaml(path: Path) -> Camera:
+    import cv2
+
+    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+    if not fs.isOpened():
+        raise CameraFileError(f"{path}: not a readable OpenCV FileStorage file")
+    try:
+        where = str(path)
+
+        def node(key):
+            n = fs.getNode(key)
+            if n.empty():
+                raise CameraFileError(f"{where}: missing field '{key}'")
+            return n
+
+        K = node("camera_matrix").mat()
+        if K is None:
+            raise CameraFileError(f"{where}: field 'camera_matrix' is not a matrix")
+        dist = node("distortion_coefficients").mat()
+        if dist is None:
+            raise CameraFileError(f"{where}: field 'distortion_coefficients' is not a matrix")
+        w = node("image_width").real()
+        h = node("image_height").real()
+        name = fs.getNode("name").string() if not fs.getNode("name").empty() else ""
+    finally:
+        fs.release()
+    K = matrix_field(K, "camera_matrix", where)
+    dist = np.asarray(dist, float).ravel()
+    if dist.size == 0 or np.allclose(dist, 0):
+        return PinholeCamera.from_matrix(K, check_image_size((w, h)), name=name)
+    return OpenCVCamera(K, dist, (w, h), name=name)
+
+
+def _write_opencv_yaml(cam: Camera, path: Path) -> None:
+    import cv2
+
+    if isinstance(cam, DivisionCamera):
+        raise CameraFileError(
+            "OpenCV YAML cannot hold the division model exactly; convert it to the opencv "
+            "model first (cutterpose camera convert)")
+    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
+    fs.write("image_width", int(cam.image_size_px[0]))
+    fs.write("image_height", int(cam.image_size_px[1]))
+    fs.write("camera_matrix", cam.K)
+    dist = cam.dist_coeffs if isinstance(cam, OpenCVCamera) else np.zeros(5)
+    fs.write("distortion_coefficients", np.asarray(dist, float).reshape(1, -1))
+    if cam.name:
+        fs.write("name", cam.name)
+    fs.release()
+
+
+def load_camera(path) -> Camera:
+    """Read a camera file: JSON (``.json``) or OpenCV YAML (``.yml``/``.yaml``/``.xml``); a HALCON
+    camera parameter file (``.dat``/``.cal`` or ``ParGroup`` content) or a ROS camera_info YAML
+    (``distortion_model`` key) is read by this module.
+
+    Raises
+    ------
+    CameraFileError
+        If the file is missing or malformed; the message names the field.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise CameraFileError(f"{path}: camera file not found")
+    suffix = path.suffix.lower()
+    fmt = sniff_format(path)
+    if fmt == "halcon":
+        return read_halcon(path)
+    if fmt == "ros":
+        return read_ros(path)
+    if suffix in (".yml", ".yaml", ".xml"):
+        return _read_opencv_yaml(path)
+    return camera_from_dict(read_json(path, CameraFileError, "camera file"), where=str(path))
+
+
+def save_camera(cam: Camera, path) -> None:
+    """Write a camera as JSON (``.json``) or OpenCV YAML (``.yml``/``.yaml``/``.xml``); HALCON
+    (``.dat``/``.cal``) and ROS camera_info (``.ros.yaml``, ``*camera_info*.yaml``) via
+    this module."""
+    path = Path(path)
+    fmt = sniff_format(path, for_writing=True)
+    if fmt == "halcon":
+        write_halcon(cam, path)
+    elif fmt == "ros":
+        write_ros(cam, path)
+    elif path.suffix.lower() in (".yml", ".yaml", ".xml"):
+        _write_opencv_yaml(cam, path)
+    else:
+        path.write_text(json.dumps(cam.to_dict(), indent=2) + "\n")

@@ -56,10 +56,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from .camera import Camera, default_camera
-from .errors import InputError
-from .holder import Holder, default_holder
-from .pose import Pose
+from ..errors import InputError
+from ..geometry.camera import Camera, default_camera
+from ..geometry.holder import Holder, default_holder
+from ..geometry.pose import Pose
 
 __all__ = [
     "RenderSettings", "PRESETS", "preset", "Rendered", "render_holder", "render_set",

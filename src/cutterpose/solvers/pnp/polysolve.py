@@ -1,7 +1,7 @@
 """All solutions of a square polynomial system: Macaulay matrix, null space, shift eigenproblem.
 
 The Groebner-free solver of the PnP notes (``shared/notes/pnp-algorithms.md``, section 6.4),
-shared by :mod:`cutterpose.pnp.aspnp` and :mod:`cutterpose.pnp.opnp`.
+shared by :mod:`cutterpose.solvers.pnp.aspnp` and :mod:`cutterpose.solvers.pnp.opnp`.
 
 For a system ``g_1 = ... = g_k = 0`` in ``k`` variables with finitely many solutions and none at
 infinity:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from .errors import ModelFileError
+from ..errors import ModelFileError
 
 
 def read_json(path, error: type[ModelFileError] = ModelFileError, what: str = "file"):

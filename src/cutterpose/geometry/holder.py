@@ -17,7 +17,7 @@ from importlib import resources
 
 import numpy as np
 
-from .errors import HolderModelError
+from ..errors import HolderModelError
 from .jsonfile import read_json
 
 __all__ = ["Holder", "load_holder", "default_holder", "holder_from_dict"]

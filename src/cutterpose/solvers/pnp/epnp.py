@@ -38,7 +38,8 @@ distance residuals ``r_ab = ||C_a - C_b||^2 - ||c_a - c_b||^2`` (for the planar 
 floats). The sign of ``beta`` is fixed by the orientation of the control points for a general
 set (``det [c_1 - c_0, c_2 - c_0, c_3 - c_0]`` has the sign of the world's, which keeps a
 mirrored structure out) and by positive mean depth for a planar set.
-The pose is the rigid alignment (:func:`~cutterpose.pnp.base.align_rigid`, AL-ok) of ``P`` to the
+The pose is the rigid alignment (:func:`~cutterpose.solvers.pnp.base.align_rigid`, AL-ok) of ``P``
+to the
 camera-frame points ``X_i = sum_j alpha_ij c_j``, whose centroid and cross-covariance with ``P``
 are linear in the control points (model-only factors), so X itself is never formed.
 
@@ -67,7 +68,8 @@ Deviations from the reference code (notes sections 2 and 8):
       keeps the refined result only when its ``E_mean`` is smaller). On the holder, refining
       only the best gives the same poses as the earlier refine-every-hypothesis code in all 4000
       trials of a 0.5 to 5 px sweep (to 1e-9 deg, the CSV's precision).
-    * A second candidate, for the ambiguity ratio of :func:`~cutterpose.pnp.base.select`, only
+    * A second candidate, for the ambiguity ratio of :func:`~cutterpose.solvers.pnp.base.select`,
+    only
       when it is a *different solution* of the distance equations: the next hypothesis by
       ``E_mean`` that does not start within 1 % of the refined best (``beta`` up to its sign),
       refined as well, and kept if it converged elsewhere. An unrefined neighbour of the best
@@ -90,7 +92,7 @@ import numpy as np
 from scipy.linalg.lapack import dgeev as _dgeev
 from scipy.linalg.lapack import dgesv as _dgesv
 
-from ..errors import DegenerateInputError
+from ...errors import DegenerateInputError
 from .base import (
     Candidate,
     det3,
@@ -512,7 +514,7 @@ class _Model(NamedTuple):
 
 def _model(P: np.ndarray) -> _Model:
     """Everything that depends on the object points only, computed once per model (cached by
-    :func:`~cutterpose.pnp.base.model_cache`)."""
+    :func:`~cutterpose.solvers.pnp.base.model_cache`)."""
     cache = model_cache(P)
     model = cache.get("epnp-v3")  # (a new key: the layout changed)
     if model is None:
@@ -580,7 +582,7 @@ def _score(hyps: list, Wf: np.ndarray, md: _Model, m: np.ndarray):
 
 
 def _align_control(SXt: np.ndarray, Pbar: np.ndarray):
-    """:func:`~cutterpose.pnp.base.align_rigid` of ``P`` to ``X = alphas c`` from
+    """:func:`~cutterpose.solvers.pnp.base.align_rigid` of ``P`` to ``X = alphas c`` from
     ``SXt = [Sa | abar]^T c`` (4, 3) of the camera-frame control points ``c``: the transposed
     cross-covariance ``(sum_i (X_i - Xbar)(P_i - Pbar)^T)^T = Sa^T c`` and the centroid
     ``Xbar = c^T abar`` of X (model-only ``Sa``, ``abar``, see :func:`_model`), without forming X.
@@ -670,7 +672,7 @@ def _dist_pm(a: list, b: list) -> float:
 
 def solve(points_px, camera, model):
     """epnp: ``solve(points_px, camera, model) -> PoseEstimate`` (the common wrapper of
-    :func:`~cutterpose.pnp.base.make_solver`, with the camera's focal length passed on to
+    :func:`~cutterpose.solvers.pnp.base.make_solver`, with the camera's focal length passed on to
     :func:`candidates` for the gate in pixels)."""
     f = getattr(camera, "focal_px", None)
     return _solver_for(float(f) if f else None)(points_px, camera, model)

@@ -27,7 +27,8 @@ perspective-n-point problem*, IEICE Trans. Inf. & Syst. E96-D(7), 2013; the PnP 
   ``(R diag(-1, -1, 1), -t)``) and picks the least reprojection error.
 
 The authors solve cases 1 and 2 with generated Groebner-basis solvers; here both go through the
-Macaulay null-space solver of :mod:`cutterpose.pnp.polysolve` (degree 8, nullity 27; degree 7,
+Macaulay null-space solver of :mod:`cutterpose.solvers.pnp.polysolve` (degree 8, nullity 27; degree
+7,
 nullity 9), which returns all complex solutions; the real ones are polished by Newton's method.
 """
 

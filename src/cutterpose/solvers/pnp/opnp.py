@@ -21,7 +21,7 @@ Method (the PnP notes, section 5; equations of the ICCV paper, section 3):
   (``f = sum_i (z_i/zbar)^2 |e_i|^2``), an unconstrained quartic with only even terms.
 * ``grad f = 0`` is 4 odd cubics with 81 complex solutions: ``q = 0`` and 40 pairs ``+-q``.
   The authors use a symmetric Groebner-basis solver (Ask, Kuang, Astrom, ICPR 2012); here the
-  Macaulay null-space solver of :mod:`cutterpose.pnp.polysolve` on the odd monomials
+  Macaulay null-space solver of :mod:`cutterpose.solvers.pnp.polysolve` on the odd monomials
   (degree 9: 520 x 420 Macaulay matrix, nullity 40, notes 6.4.6) returns all 40 pairs, the
   real ones are polished by Newton's method on ``grad f``.
 * Candidates are the real local minima (Hessian positive semidefinite up to a relative

@@ -1,0 +1,144 @@
+"""Image input and the first filters of section 2.1: reading, grey conversion, sanity checks,
+the reduced image, and the 7 x 7 median + global threshold (applied in a band of tiles).
+
+Convention:
+    Grey images are ``uint8`` arrays ``(rows, cols)``; pixels as in
+    :mod:`cutterpose.geometry.camera`.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from ..errors import ImageError
+from ..geometry.camera import Camera
+from .params import FeatureParams
+
+
+def load_image(path) -> np.ndarray:
+    """Read an image file as 8-bit grey.
+
+    Colour images are converted to grey, 16-bit images scaled to 8 bits.
+
+    Raises
+    ------
+    ImageError
+        Missing file, a directory, not an image, or a truncated/corrupt image.
+    """
+    path = Path(path)
+    if not path.exists():
+        raise ImageError(f"{path}: image file not found")
+    if not path.is_file():
+        raise ImageError(f"{path}: not a file")
+    data = np.fromfile(str(path), dtype=np.uint8)
+    if data.size == 0:
+        raise ImageError(f"{path}: empty file, not an image")
+    img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise ImageError(f"{path}: not a readable image (unknown format, truncated or corrupt)")
+    if _png_truncated(data):
+        raise ImageError(f"{path}: truncated PNG (no IEND chunk)")
+    return as_grey_u8(img, str(path))
+
+
+def _png_truncated(data: np.ndarray) -> bool:
+    # libpng may decode a cut PNG partially (the missing rows black) without an error.
+    is_png = data.size >= 8 and bytes(data[:8]) == b"\x89PNG\r\n\x1a\n"
+    return is_png and b"IEND" not in bytes(data[-32:])
+
+
+def as_grey_u8(img: np.ndarray, where: str = "image") -> np.ndarray:
+    """An image array as contiguous 8-bit grey (colour -> grey, 16 bit / float -> 8 bit)."""
+    a = np.asarray(img)
+    if a.ndim == 3 and a.shape[2] in (3, 4):
+        a = cv2.cvtColor(a, cv2.COLOR_BGR2GRAY if a.shape[2] == 3 else cv2.COLOR_BGRA2GRAY)
+    elif a.ndim == 3 and a.shape[2] == 1:
+        a = a[:, :, 0]
+    if a.ndim != 2:
+        raise ImageError(f"{where}: expected a grey or colour image, got an array of shape "
+                         f"{a.shape}")
+    if a.dtype == np.uint16:
+        a = (a >> 8).astype(np.uint8)
+    elif a.dtype != np.uint8:
+        if not np.issubdtype(a.dtype, np.number) or not np.all(np.isfinite(a)):
+            raise ImageError(f"{where}: image holds non-numeric or non-finite values")
+        hi = 1.0 if a.max() <= 1.0 else 255.0
+        a = np.clip(np.rint(a * (255.0 / hi)), 0, 255).astype(np.uint8)
+    return np.ascontiguousarray(a)
+
+
+def check_image(image: np.ndarray, camera: Camera, small: np.ndarray | None = None) -> None:
+    """Refuse images that cannot show the holder: wrong size, black, saturated, uniform.
+
+    Raises
+    ------
+    ImageError
+        With the measured statistic in the message.
+    """
+    h, w = image.shape[:2]
+    if (w, h) != tuple(camera.image_size_px):
+        cw, ch = camera.image_size_px
+        raise ImageError(f"image is {w} x {h} px but the camera model is for {cw} x {ch} px "
+                         "(wrong camera file, or a resized/cropped image)")
+    s = small if small is not None else image[::8, ::8]
+    p01, p50, p99 = np.percentile(s, [1, 50, 99])
+    if p99 < 20:
+        raise ImageError(f"image is black (99th percentile grey level {p99:.0f}): no light or "
+                         "lens cap on")
+    if np.mean(s >= 250) > 0.5:
+        raise ImageError(f"image is saturated ({100 * np.mean(s >= 250):.0f} % of pixels at "
+                         "255): overexposed")
+    if p99 - p01 < 10:
+        raise ImageError(f"image is nearly uniform (grey levels {p01:.0f}..{p99:.0f}): "
+                         "nothing to measure")
+
+
+def reduce_image(image: np.ndarray, factor: int) -> np.ndarray:
+    """Area-averaged reduction by an integer factor (the image for the ROI search)."""
+    if factor <= 1:
+        return image
+    h, w = image.shape
+    return cv2.resize(image, (w // factor, h // factor), interpolation=cv2.INTER_AREA)
+
+
+def binarize(sub: np.ndarray, small_sub: np.ndarray, level: int, params: FeatureParams
+             ) -> np.ndarray:
+    """Median filter and global threshold of the ROI: grey in ``[level, threshold_high]`` -> 255.
+
+    With ``band_only`` the ROI is cut in tiles of ``tile_px``; the reduced image (each pixel the
+    mean of ``roi_downscale^2`` pixels) is thresholded first, and only tiles where that coarse
+    binary changes within one reduced pixel are median-filtered and thresholded at full
+    resolution; the others take the coarse value. The pocket's interior and the face far from
+    its edge never reach the 7 x 7 median, which is what makes 12 Mpx frames fast.
+    """
+    k, lo, hi = params.median_ksize, level, params.threshold_high
+    if not params.band_only or params.roi_downscale <= 1:
+        med = cv2.medianBlur(sub, k) if k > 1 else sub
+        return cv2.inRange(med, lo, hi)
+    s = params.roi_downscale
+    T = max(s, (params.tile_px // s) * s)
+    b = T // s
+    H, W = sub.shape
+    ny, nx = -(-H // T), -(-W // T)
+    # coarse binary padded to whole tiles; a missing border strip counts as mixed
+    cb = np.full((ny * b, nx * b), 127, np.uint8)
+    cs = small_sub[: ny * b, : nx * b]
+    cb[: cs.shape[0], : cs.shape[1]] = np.where((cs >= lo) & (cs <= hi), 255, 0)
+    kernel = np.ones((3, 3), np.uint8)
+    mixed_small = cv2.dilate(cb, kernel) != cv2.erode(cb, kernel)
+    mixed = mixed_small.reshape(ny, b, nx, b).any(axis=(1, 3))
+    value = (cb.reshape(ny, b, nx, b).mean(axis=(1, 3)) > 127).astype(np.uint8) * 255
+    binary = np.repeat(np.repeat(value, T, axis=0), T, axis=1)[:H, :W].copy()
+    r = k // 2
+    for i, j in zip(*np.nonzero(mixed)):
+        y0, x0 = i * T, j * T
+        y1, x1 = min(y0 + T, H), min(x0 + T, W)
+        py0, px0 = max(y0 - r, 0), max(x0 - r, 0)
+        py1, px1 = min(y1 + r, H), min(x1 + r, W)
+        tile = sub[py0:py1, px0:px1]
+        med = cv2.medianBlur(tile, k) if k > 1 else tile
+        binary[y0:y1, x0:x1] = cv2.inRange(med[y0 - py0: y1 - py0, x0 - px0: x1 - px0], lo, hi)
+    return binary
