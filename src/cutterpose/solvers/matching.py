@@ -77,7 +77,7 @@ from ..geometry.holder import Holder
 from ..geometry.pose import rotation_from_euler_deg
 from ..geometry.working_range import MotionRange, PoseOutOfRangeError, pose_dof
 from .estimate import PoseEstimate
-from .vanishing import check_contour, initial_pose
+from .vanishing import check_contour, initial_pose, initial_pose_paper
 
 __all__ = ["DistanceImage", "distance_image", "dm_score", "TemplateLibrary", "distance_match",
            "refine_continuous", "solve_dm", "solve_dm_plus", "PAPER_STEPS"]
@@ -480,10 +480,11 @@ def refine_continuous(est: PoseEstimate, ideal_px: np.ndarray, camera: Camera, h
 
 
 # ---- registered methods --------------------------------------------------------------------
-def _solve(points_px, camera: Camera, model: Holder, refine: bool) -> PoseEstimate:
+def _solve(points_px, camera: Camera, model: Holder, refine: bool,
+           paper_initial: bool = False) -> PoseEstimate:
     t0 = time.perf_counter()
-    name = "dm+" if refine else "dm"
-    init = initial_pose(points_px, camera, model)
+    name = "dm-paper" if paper_initial else ("dm+" if refine else "dm")
+    init = (initial_pose_paper if paper_initial else initial_pose)(points_px, camera, model)
     if not init:
         return PoseEstimate.failure(name, f"initial pose: {init.reason}", info=init.info,
                                     time_ms=(time.perf_counter() - t0) * 1e3)
@@ -497,6 +498,12 @@ def _solve(points_px, camera: Camera, model: Holder, refine: bool) -> PoseEstima
 def solve_dm(points_px, camera: Camera, model: Holder) -> PoseEstimate:
     """Registered method ``dm``: initial pose (sphere) + the paper's distance matching."""
     return _solve(points_px, camera, model, refine=False)
+
+
+def solve_dm_paper(points_px, camera: Camera, model: Holder) -> PoseEstimate:
+    """Registered method ``dm-paper``: the paper as written, its own initial pose (image-plane
+    vanishing points, section 2.2) + its distance matching (section 2.3)."""
+    return _solve(points_px, camera, model, refine=False, paper_initial=True)
 
 
 def solve_dm_plus(points_px, camera: Camera, model: Holder) -> PoseEstimate:
