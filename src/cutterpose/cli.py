@@ -237,6 +237,29 @@ def experiment_images_cmd(
 
 
 
+@experiment_app.command("field-table")
+@friendly
+def experiment_field_cmd(
+    sets: list[str] = typer.Argument(..., help="NAME=RESULTS_DIR of `experiment images`, "
+                                     "one per image set (e.g. sharp=results/sharp)."),
+    out: str = typer.Option("results/field", help="Output folder (field.md, field.json)."),
+):
+    """The field table: accepted/refused, bias, std, p95 errors and wrong accepted poses."""
+    from pathlib import Path
+
+    from .errors import InputError
+    from .experiments.field import write_field
+
+    pairs = {}
+    for s in sets:
+        name, sep, folder = s.partition("=")
+        if not sep or not name or not folder:
+            raise InputError(f"{s!r}: give each set as NAME=RESULTS_DIR")
+        pairs[name] = Path(folder)
+    write_field(pairs, out)
+    typer.echo((Path(out) / "field.md").read_text())
+
+
 # ---- section: calibrate, render-plate, camera convert (issue 6) ---------------------------
 def _plate_from_options(plate_file: str | None, grid: str | None, spacing_mm: float | None,
                         diameter_mm: float | None):

@@ -12,7 +12,8 @@ Outputs in ``out``: ``trials.csv`` (protocol columns, ``sigma_px`` empty), ``sum
 ``summary.json`` (the shared report writers), ``corners.csv`` (per image: difficulty, RMS of the
 detected corners against the true ones with and without the gradient refinement, threshold
 used, segmentation: the paper's ``contour`` or the model-guided fallback ``model``) and
-``failures.csv`` (trial, method, reason).
+``failures.csv`` (trial, method, reason) and ``verdicts.csv`` (trial, method, accepted 0/1,
+reason: the measurement's own verdict, whatever the truth says).
 """
 
 from __future__ import annotations
@@ -79,7 +80,7 @@ def _one_image(args):
     i, entry, folder, camera, holder, methods, params = args
     R = np.asarray(entry["R_cam_holder"], float)
     t = np.asarray(entry["t_cam_holder_mm"], float)
-    out = {"trial": i, "rows": [], "failures": [], "corners": None}
+    out = {"trial": i, "rows": [], "failures": [], "corners": None, "verdicts": []}
     info = {"trial": i, "file": entry["file"], "difficulty": entry.get("difficulty", ""),
             "threshold": "", "segmentation": "", "rms_refined_px": math.nan,
             "rms_threshold_px": math.nan, "reason": ""}
@@ -89,6 +90,7 @@ def _one_image(args):
         for m in methods:
             out["rows"] += trial_rows(i, math.nan, m, R, t, nan_R, nan_t, math.nan)
             out["failures"].append((i, m, reason))
+            out["verdicts"].append((i, m, 0, reason))
         info["reason"] = reason
         out["corners"] = info
 
@@ -114,6 +116,7 @@ def _one_image(args):
             rows = trial_rows(i, math.nan, m, R, t, meas.pose.R, meas.pose.t_mm, ms)
         else:
             rows = trial_rows(i, math.nan, m, R, t, nan_R, nan_t, ms)
+        out["verdicts"].append((i, m, int(meas.ok), "" if meas.ok else meas.quality.reason))
         if not meas.ok:
             for r in rows:
                 r["failed"] = 1
@@ -165,6 +168,11 @@ def run_images(folder, methods: list[str], out, workers: int = 1, params=None,
         w.writerow(["trial", "method", "reason"])
         for res in results:
             w.writerows(res["failures"])
+    with open(out / "verdicts.csv", "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["trial", "method", "accepted", "reason"])
+        for res in results:
+            w.writerows(res["verdicts"])
     cols = ["trial", "file", "difficulty", "threshold", "segmentation", "rms_refined_px",
             "rms_threshold_px", "reason"]
     with open(out / "corners.csv", "w", newline="") as fh:
