@@ -168,9 +168,10 @@ def match_outline(small: np.ndarray, camera: Camera, holder: Holder, params: Fea
     surround needed): the image reduced ``roi_downscale`` times is turned into the doubled-angle
     field ``w (cos 2 theta, sin 2 theta)`` of its gradient (``theta`` its direction, ``w`` the
     magnitude saturated at the 90th percentile), and the outline templates
-    (:func:`_outline_template`) are correlated with it, coarse to fine. ``cos 2 (theta - phi)`` is 1 where a
-    gradient lies along the outline's normal, whatever its sign (a bright cutter in a dark
-    pocket, a face as bright as its surround), and averages to 0 on texture.
+    (:func:`_outline_template`) are correlated with it, coarse to fine (every turn on the
+    image reduced twice more, then the best turn +-1.5 deg). ``cos 2 (theta - phi)`` is 1
+    where a gradient lies along the outline's normal, whatever its sign (a bright cutter in a
+    dark pocket, a face as bright as its surround), and averages to 0 on texture.
 
     Returns
     -------
