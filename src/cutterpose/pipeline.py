@@ -307,7 +307,8 @@ def _solve(method: str, corners_px: np.ndarray, camera: Camera, holder: Holder,
                               half_width_dof=limits.range_half_width_dof)
             init = _pose_from_homography(H, camera) if H is not None else None
             est = matching.distance_match(corners_px[seen], camera, holder, init,
-                                          motion_range=rng, refine=method == "dm+")
+                                          motion_range=rng, refine=method == "dm+",
+                                          partial=True)
             est.method = method
             est.time_ms = (time.perf_counter() - t0) * 1e3
             return est

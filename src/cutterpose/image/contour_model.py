@@ -221,7 +221,8 @@ def search_outline(img: np.ndarray, roi_origin, camera: Camera, holder: Holder,
     ``search_step_px``, ``corner_trim_px`` away from the corners, ``+-W`` px, smoothed along
     the normal with ``W / 12`` px) give per profile the strongest dark-to-bright step going
     outwards (pocket to face), if it stands out of the profiles' noise (3 robust sigmas of the
-    derivative: no fixed grey level or contrast). The homography is re-fitted to all those
+    derivative in wide windows, a quarter of the median step in narrow ones: no fixed grey
+    level or contrast). The homography is re-fitted to all those
     points at once, each on its edge's line (:func:`_fit_h_lines`), by IRLS with Tukey weights
     whose scale is the MAD of the residuals under the current homography (the robust start).
     Edge points on the cutter's silhouette have the opposite polarity; those on slurry, chips
@@ -229,8 +230,8 @@ def search_outline(img: np.ndarray, roi_origin, camera: Camera, holder: Holder,
 
     Returns
     -------
-    H : (3, 3) the fitted homography; inlier_fraction : share of the last gate's points with
-    weight.
+    H : (3, 3) the fitted homography; support : share of the last gate's profiles (over the
+    whole outline) whose edge point fits it.
     """
     plane_lines = holder.edge_lines
     model = np.asarray(holder.corners_mm, float)
@@ -254,12 +255,17 @@ def search_outline(img: np.ndarray, roi_origin, camera: Camera, holder: Holder,
             normals.append(np.broadcast_to(-sign * np.array([-d[1], d[0]]), (len(ts), 2)))
             which.append(np.full(len(ts), k))
         base, n_out, which = np.vstack(bases), np.vstack(normals), np.concatenate(which)
+        if len(base) < 16 or not np.all(np.isfinite(base)):
+            raise FeatureError("the pocket outline fit degenerated: holder not in view")
         prof = sample_profiles(img, roi_origin, camera, base, n_out, offsets)
         prof = gaussian_filter1d(prof, max(W / 12.0, 0.8) / step, axis=1)
         g = np.diff(prof, axis=1)
         j = np.argmax(g, axis=1)
         peak = g[np.arange(len(g)), j]
-        noise = MAD_TO_SIGMA * float(np.median(np.abs(g - np.median(g))))
+        # wide windows are mostly flat: the derivative's MAD is its noise; narrow ones hold
+        # little but the edge, so there a step must reach a quarter of the median step
+        noise = (MAD_TO_SIGMA * float(np.median(np.abs(g - np.median(g)))) if W >= 10 else
+                 0.25 / 3.0 * float(np.median(peak[peak > 0])) if np.any(peak > 0) else 0.0)
         # parabolic sub-sample peak
         jj = np.clip(j, 1, g.shape[1] - 2)
         y0, y1, y2 = (g[np.arange(len(g)), jj + e] for e in (-1, 0, 1))
@@ -283,5 +289,6 @@ def search_outline(img: np.ndarray, roi_origin, camera: Camera, holder: Holder,
             r = _line_distances_px(H1, ln, p)
             H = H1
             s = min(s, mad_scale(r[w > 0], 0.1))
-        frac = float(np.mean(tukey_weights(r, s) > 0))
+        # share of all profiles (the whole outline) whose edge point fits
+        frac = float(np.count_nonzero(tukey_weights(r, s) > 0)) / len(base)
     return H, frac

@@ -321,6 +321,8 @@ def sample_profiles(img: np.ndarray, roi_origin, camera: Camera, base_ideal: np.
     offsets ``o`` (O,), as a (T, O) float32 array (bilinear, on ``img`` whose pixel (0, 0) is
     ``roi_origin``). The distortion is linearised along each short profile (two
     :meth:`Camera.distort_px` calls for T points instead of T x O)."""
+    if len(base_ideal) == 0:
+        return np.zeros((0, len(offsets)), np.float32)
     n_out = np.broadcast_to(np.asarray(n_out, float), base_ideal.shape)
     o0 = camera.distort_px(base_ideal)
     d1 = camera.distort_px(base_ideal + n_out) - o0

@@ -239,8 +239,13 @@ def detect_features_field(image: np.ndarray, camera: Camera, holder: Holder,
     roi = (int(u0), int(v0), int(u1), int(v1))
     sub = image[v0:v1, u0:u1].astype(np.float32)
     origin = np.array([u0, v0], float)
-    H, _ = search_outline(sub, origin, camera, holder, H0, params)
+    H, support_all = search_outline(sub, origin, camera, holder, H0, params)
     lap("outline search")
+    if support_all < params.min_outline_support:
+        raise FeatureError(f"the pocket outline fits the image's edges along only "
+                           f"{100 * support_all:.0f} % of its length (< "
+                           f"{100 * params.min_outline_support:.0f} %): holder hidden, partly "
+                           "out of view, or not in view")
     pred = _apply_h(H, model)
     pred_px = camera.distort_px(pred)
     near = ~camera.in_image(pred_px, params.border_margin_px)
@@ -273,8 +278,9 @@ def detect_features_field(image: np.ndarray, camera: Camera, holder: Holder,
     inward = sign * np.column_stack([-d[:, 1], d[:, 0]])
     lines_fit = np.array([line_from(pred[k], inward[k]) for k in range(n)])
     length = np.linalg.norm(nxt - pred, axis=1)
-    spans = [(params.corner_trim_px, float(length[k]) - params.corner_trim_px, pred[k], d[k])
-             for k in range(n)]
+    # edge_wear keeps 2 refine_trim_px more from each end (about a contour segment's span)
+    spans = [(0.5 * params.corner_trim_px, float(length[k]) - 0.5 * params.corner_trim_px,
+              pred[k], d[k]) for k in range(n)]
     dark, off = edge_wear(sub, origin, camera, np.where(seen[:, None], lines, lines_fit), spans,
                           inward, params)
     dark[~seen], off[~seen] = np.nan, np.nan

@@ -70,12 +70,13 @@ class FeatureParams:
     #: in-plane turns of the outline template (deg; the working range is +-10 deg)
     roi_gammas_deg: tuple = (-12.0, -9.0, -6.0, -3.0, 0.0, 3.0, 6.0, 9.0, 12.0)
     roi_line_px: int = 3                  #: width of the template's outline (reduced px)
-    roi_min_edge_score: float = 0.12      #: outline orientation match below this: no holder
+    roi_min_edge_score: float = 0.3       #: outline orientation match below this: no holder
     #: half widths (px) of the successive model-guided searches along the outline's normals
     search_gates_px: tuple = (40.0, 14.0, 6.0)
     search_step_px: float = 10.0          #: spacing of the search profiles along each edge
     corner_trim_px: float = 10.0          #: profiles kept this far from the predicted corners
     min_line_support: float = 0.3         #: a line is seen if inliers cover this much of it
+    min_outline_support: float = 0.6      #: the outline fit must rest on edges along this much
     max_line_shift_px: float = 2.5        #: a seen line stays this close to the outline fit
 
     @classmethod
@@ -97,7 +98,11 @@ class FeatureParams:
         return replace(self, median_ksize=k if k >= 3 else 3,
                        roi_downscale=max(1, int(round(self.roi_downscale * factor))),
                        roi_margin_px=int(round(self.roi_margin_px * factor)),
-                       min_segment_px=self.min_segment_px * factor)
+                       min_segment_px=self.min_segment_px * factor,
+                       search_gates_px=tuple(max(3.0, g * factor)
+                                             for g in self.search_gates_px),
+                       search_step_px=max(2.0, self.search_step_px * factor),
+                       corner_trim_px=max(4.0, self.corner_trim_px * factor))
 
 
 @dataclass

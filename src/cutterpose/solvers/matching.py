@@ -314,7 +314,7 @@ def distance_match(points_px, camera: Camera, holder: Holder, initial,
                    steps=PAPER_STEPS, coarse_radius: int = 1, n_starts: int = 1,
                    library: TemplateLibrary | None = None, slack: float = 0.5,
                    dt_mask: int = cv2.DIST_MASK_5, bilinear: bool = True,
-                   truncate_mm: float = 10.0) -> PoseEstimate:
+                   truncate_mm: float = 10.0, partial: bool | None = None) -> PoseEstimate:
     """Distance matching from an initial pose (module doc); ``refine=True`` gives dm+.
 
     Parameters
@@ -325,7 +325,9 @@ def distance_match(points_px, camera: Camera, holder: Holder, initial,
         under slurry, points on a lump). Then the initial pose may be None, each template
         point's distance is capped at ``truncate_mm`` (in px at the range's centre depth: a
         missing corner costs a constant, it does not pull the pose) and dm+ pairs only model
-        and detected corners closer than that (rectangular one-to-one assignment).
+        and detected corners closer than that (rectangular one-to-one assignment). ``partial``
+        says which (None: a partial set if ``initial`` is None or the count is not 20; a set
+        of 20 with some missing and as many spurious needs ``partial=True``).
     camera, holder : camera model and holder geometry.
     initial : a :class:`PoseEstimate` (its ``candidates`` are all used as starts, best first,
         up to ``n_starts``) or a pair ``(R, t_mm)``; None: the centre of the motion range,
@@ -352,7 +354,8 @@ def distance_match(points_px, camera: Camera, holder: Holder, initial,
     t0 = time.perf_counter()
     rng = motion_range or MotionRange()
     x = as_points_px(points_px)
-    partial = initial is None or len(x) != holder.n_corners
+    if partial is None:
+        partial = initial is None or len(x) != holder.n_corners
     x = _check_partial(x, holder) if partial else check_contour(x, holder)
     if initial is None:
         c = np.asarray(rng.center_dof, float)
