@@ -180,6 +180,8 @@ def measure_cmd(
     method: str = typer.Option("dm+", help="Pose method (cutterpose.methods)."),
     overlay: str = typer.Option(None, "--overlay", help="Write an overlay PNG here."),
     as_json: bool = typer.Option(False, "--json", help="One JSON object on stdout."),
+    chain: str = typer.Option("field", help="Image chain: field (gradient outline, robust "
+                              "lines; default) or paper (section 2.1: threshold 70, contour)."),
 ):
     """Measure the holder's pose in one image (exit 3 when the pose is refused)."""
     import json as _json
@@ -191,7 +193,11 @@ def measure_cmd(
     cam = _render_camera(camera)
     hol = load_holder(holder) if holder else None
     img = load_image(image)
-    m = measure(img, cam, hol, method)
+    from .image import FeatureParams
+
+    if chain not in ("field", "paper"):
+        fail(f"--chain must be 'field' or 'paper', got {chain!r}")
+    m = measure(img, cam, hol, method, params=FeatureParams.for_camera(cam, chain=chain))
     if overlay:
         from .geometry.holder import default_holder
         from .overlay import write_overlay
