@@ -57,6 +57,9 @@ def experiment_synthetic(
     trials_file: str = typer.Option(None, "--trials-file", help="Run a PROTOCOL trial file "
                                     "(.npz) instead of drawing trials."),
     workers: int = typer.Option(1, min=1, help="Worker processes (results are identical)."),
+    scheduler: str = typer.Option(None, "--scheduler", help="Run on the Dask distributed "
+                                  "cluster at this address (tcp://host:8786) instead of local "
+                                  "processes; needs cutterpose[cluster]."),
     seed: int = typer.Option(0, help="Base seed of the trial generator."),
     progress: bool = typer.Option(True, help="Show a progress bar on stderr."),
 ):
@@ -66,7 +69,7 @@ def experiment_synthetic(
 
     meths = parse_methods(methods)
     res = run_synthetic(meths, parse_sigmas(sigmas), trials, out, seed=seed, workers=workers,
-                        trials_file=trials_file, show_progress=progress)
+                        trials_file=trials_file, show_progress=progress, scheduler=scheduler)
     typer.echo((res.out_dir / "summary.md").read_text())
     log(f"wrote {res.out_dir}/trials.csv, summary.md, summary.json, fig5.png")
 
@@ -152,6 +155,9 @@ def render_set_cmd(
     preset: str = typer.Option(None, help="Use this preset for every image (default: a mix "
                                "of easy, dim, worn, occluded, blurred, hard)."),
     workers: int = typer.Option(1, min=1, help="Worker processes (the set does not change)."),
+    scheduler: str = typer.Option(None, "--scheduler", help="Run on the Dask distributed "
+                                  "cluster at this address (tcp://host:8786) instead of local "
+                                  "processes; needs cutterpose[cluster]."),
 ):
     """Render an image set with its truth.json (PROTOCOL.md, exchange formats)."""
     from rich.progress import Progress
@@ -166,7 +172,7 @@ def render_set_cmd(
     cam = _render_camera(camera)
     with Progress(transient=True, console=None) as bar:
         task = bar.add_task("rendering", total=count)
-        path = render_set(count, seed, out, cam, mix=mix, workers=workers,
+        path = render_set(count, seed, out, cam, mix=mix, workers=workers, scheduler=scheduler,
                           progress=lambda done, n: bar.update(task, completed=done))
     typer.echo(f"wrote {count} images and {path}")
 
@@ -215,6 +221,9 @@ def experiment_images_cmd(
                                 help="Comma-separated methods."),
     out: str = typer.Option("results/images", help="Output folder."),
     workers: int = typer.Option(1, min=1, help="Worker processes."),
+    scheduler: str = typer.Option(None, "--scheduler", help="Run on the Dask distributed "
+                                  "cluster at this address (tcp://host:8786) instead of local "
+                                  "processes; the set must be at the same path on every worker."),
     limit: int = typer.Option(None, help="Only the first N images."),
     no_refine: bool = typer.Option(False, "--no-refine",
                                    help="The paper's lines only (no gradient refinement)."),
@@ -229,7 +238,7 @@ def experiment_images_cmd(
     names = [m.name for m in parse_methods(methods)]
     with Progress(transient=True) as bar:
         task = bar.add_task("images", total=None)
-        run_images(folder, names, out, workers=workers, limit=limit,
+        run_images(folder, names, out, workers=workers, limit=limit, scheduler=scheduler,
                    params=FeatureParams(refine=not no_refine),
                    progress=lambda done, n: bar.update(task, completed=done, total=n))
     typer.echo(f"wrote {out}/trials.csv, summary.md, corners.csv, failures.csv")
