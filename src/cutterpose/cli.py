@@ -180,8 +180,11 @@ def render_set_cmd(
 @app.command("measure")
 @friendly
 def measure_cmd(
-    image: str = typer.Argument(..., help="Image of the holder (PNG, JPEG, TIFF...)."),
+    image: str = typer.Argument(..., help="Image of the holder (PNG, JPEG, TIFF...), or a raw "
+                                "8-bit frame (.raw with a sidecar <file>.json, or --raw)."),
     camera: str = typer.Option(None, help="table1 (default), synthetic, or a camera file."),
+    raw: str = typer.Option(None, "--raw", help="Read IMAGE as a raw Mono8 frame of "
+                            "WIDTHxHEIGHT pixels (as a GigE camera delivers it; no decode)."),
     holder: str = typer.Option(None, help="Holder JSON file (default: the bundled holder)."),
     method: str = typer.Option("dm+", help="Pose method (cutterpose.methods)."),
     overlay: str = typer.Option(None, "--overlay", help="Write an overlay PNG here."),
@@ -189,15 +192,19 @@ def measure_cmd(
 ):
     """Measure the holder's pose in one image (exit 3 when the pose is refused)."""
     import json as _json
+    import time
 
+    from .frames import load_frame, parse_raw_size
     from .geometry.holder import load_holder
-    from .image import load_image
     from .pipeline import measure
 
     cam = _render_camera(camera)
     hol = load_holder(holder) if holder else None
-    img = load_image(image)
+    t0 = time.perf_counter()
+    img = load_frame(image, cam, parse_raw_size(raw) if raw else None)
+    load_ms = (time.perf_counter() - t0) * 1e3
     m = measure(img, cam, hol, method)
+    m.timings_ms = {"load": load_ms} | m.timings_ms
     if overlay:
         from .geometry.holder import default_holder
         from .overlay import write_overlay

@@ -37,11 +37,12 @@ from pathlib import Path
 import numpy as np
 
 from .errors import CutterposeError, FeatureError, ImageError
+from .frames import load_frame
 from .geometry.camera import Camera, default_camera
 from .geometry.holder import Holder, default_holder
 from .geometry.pose import Pose, pixel_jacobian, rotation_from_euler_deg
 from .geometry.working_range import MotionRange
-from .image import FeatureParams, Features, detect_features, load_image
+from .image import FeatureParams, Features, detect_features
 from .methods import get_method
 from .solvers.estimate import PoseEstimate
 
@@ -387,7 +388,9 @@ def measure(image, camera: Camera | None = None, holder: Holder | None = None,
 
     Parameters
     ----------
-    image : path of an image file, or a grey/colour array of the camera's size.
+    image : path of an image file or of a raw Mono8 frame (``.raw`` with its sidecar), a raw
+        8-bit frame buffer of the camera's size (bytes, bytearray, memoryview: used in place,
+        no decode), or a grey/colour array of the camera's size (:mod:`cutterpose.frames`).
     camera, holder : defaults: the Table 1 camera and ``holder.json``.
     method : a registered pose method (``dm+`` by default).
     params : image processing parameters (the paper's by default).
@@ -412,8 +415,9 @@ def measure(image, camera: Camera | None = None, holder: Holder | None = None,
     get_method(method)  # unknown names fail before any work
     t0 = time.perf_counter()
     load_ms = 0.0
-    if isinstance(image, (str, Path)):
-        image = load_image(image)
+    if not isinstance(image, np.ndarray):
+        # a file is decoded (or read raw); a raw buffer is only viewed (cutterpose.frames)
+        image = load_frame(image, camera)
         load_ms = (time.perf_counter() - t0) * 1e3
     try:
         feats = detect_features(image, camera, holder, params)
