@@ -272,7 +272,13 @@ def _solve(method: str, corners_px: np.ndarray, camera: Camera, holder: Holder,
         t0 = time.perf_counter()
         rng = MotionRange(center_dof=limits.range_center_dof,
                                     half_width_dof=limits.range_half_width_dof)
-        init = vanishing.initial_pose(corners_px, camera, holder)
+        # the initial pose searches the synthetic protocol's wide range, widened to cover the
+        # limits' range when that reaches beyond it (an approach from 900 mm)
+        wide = MotionRange()
+        lo = np.minimum(np.subtract(wide.center_dof, wide.half_width_dof), rng.lower)
+        hi = np.maximum(np.add(wide.center_dof, wide.half_width_dof), rng.upper)
+        init = vanishing.initial_pose(corners_px, camera, holder, MotionRange(
+            center_dof=tuple((lo + hi) / 2), half_width_dof=tuple((hi - lo) / 2)))
         if not init:
             return PoseEstimate.failure(method, f"initial pose: {init.reason}")
         est = matching.distance_match(corners_px, camera, holder, init, motion_range=rng,

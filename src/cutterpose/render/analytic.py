@@ -670,7 +670,7 @@ def _occlude(value: np.ndarray, corners_px: np.ndarray, settings: RenderSettings
 
 def render_holder(pose: Pose | None = None, camera: Camera | None = None,
                   holder: Holder | None = None, settings: RenderSettings | str | None = None,
-                  seed: int = 0) -> Rendered:
+                  seed: int = 0, noise_seed: int | None = None) -> Rendered:
     """Render an 8-bit grey image of the holder at ``pose``.
 
     Parameters
@@ -680,6 +680,8 @@ def render_holder(pose: Pose | None = None, camera: Camera | None = None,
     holder : the holder model (default: ``holder.json``).
     settings : a :class:`RenderSettings` or the name of a preset (default ``"easy"``).
     seed : seeds every random choice (textures, occluders, noise): same seed, same image.
+    noise_seed : if given, seeds the sensor noise instead (frames of one sequence: the same
+        holder surface, fresh noise in every frame).
 
     Returns
     -------
@@ -693,6 +695,8 @@ def render_holder(pose: Pose | None = None, camera: Camera | None = None,
     elif isinstance(settings, str):
         settings = preset(settings)
     r_scene, r_occ, r_noise = np.random.default_rng(seed).spawn(3)
+    if noise_seed is not None:
+        r_noise = np.random.default_rng(noise_seed)
     corners_px = camera.project(pose.apply(holder.points_holder_mm))
     # top-face texels of ~0.9 pixel footprint: finer is wasted, coarser blurs the steel
     texel_mm = max(0.1, 0.9 * float(pose.t_mm[2]) / camera.focal_px)
