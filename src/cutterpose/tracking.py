@@ -498,11 +498,12 @@ class Tracker:
         tp = self.tp
         n = len(a)
         offs = np.arange(-half_width_px, half_width_px + 1e-9, 0.25)
-        counts = np.maximum(((length - 2 * tp.end_trim_px) // tp.profile_step_px).astype(int)
-                            + 1, 0)
+        # a profile nearer a corner than the band's half width crosses the neighbouring edge
+        trim = max(tp.end_trim_px, half_width_px + 4.0)
+        counts = np.maximum(((length - 2 * trim) // tp.profile_step_px).astype(int) + 1, 0)
         ids = np.repeat(np.arange(n), counts)
         first = np.concatenate([[0], np.cumsum(counts)[:-1]])
-        ts = tp.end_trim_px + (np.arange(ids.size) - first[ids]) * tp.profile_step_px
+        ts = trim + (np.arange(ids.size) - first[ids]) * tp.profile_step_px
         base = a[ids] + ts[:, None] * d[ids]
         n_out = -inward[ids]
         q = base[:, None, :] + offs[None, :, None] * n_out[:, None, :]
