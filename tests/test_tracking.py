@@ -49,7 +49,8 @@ def test_se3_exp_log_round_trip():
         np.testing.assert_allclose(se3_log(R, t), xi, atol=1e-9)
     # a pure translation is itself; a rotation moves the translation along V(omega)
     R, t = se3_exp(np.array([0, 0, 0, 1.0, 2.0, 3.0]))
-    np.testing.assert_allclose(t, [1, 2, 3]) and np.testing.assert_allclose(R, np.eye(3))
+    np.testing.assert_allclose(t, [1, 2, 3])
+    np.testing.assert_allclose(R, np.eye(3))
 
 
 def test_filter_follows_constant_velocity_and_resets_on_a_jump():
