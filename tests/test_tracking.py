@@ -126,3 +126,22 @@ def test_track_cli_bad_source(tmp_path):
     assert r.exit_code == 2 and "no frames" in r.output
     r = runner.invoke(app, ["render-sequence", "--out", str(tmp_path), "--engine", "nope"])
     assert r.exit_code == 2 and "unknown render engine" in r.output
+
+
+def test_track_cli_reads_a_video(sequence, tmp_path):
+    import cv2
+
+    d, truth = sequence
+    w, h = CAM.image_size_px
+    path = tmp_path / "approach.avi"
+    vw = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 10, (w, h), False)
+    assert vw.isOpened()
+    for e in truth["images"][:3]:
+        vw.write(cv2.imread(str(d / e["file"]), cv2.IMREAD_GRAYSCALE))
+    vw.release()
+    r = runner.invoke(app, ["track", str(path), "--camera", str(d / "cam.json"),
+                            "--json-lines"])
+    assert r.exit_code == 0, r.output
+    lines = [json.loads(x) for x in r.stdout.splitlines() if x.startswith("{")]
+    assert [x["file"] for x in lines] == ["approach.avi#0", "approach.avi#1", "approach.avi#2"]
+    assert lines[0]["mode"] == "full" and lines[0]["pose"] is not None
