@@ -57,6 +57,9 @@ def experiment_synthetic(
     trials_file: str = typer.Option(None, "--trials-file", help="Run a PROTOCOL trial file "
                                     "(.npz) instead of drawing trials."),
     workers: int = typer.Option(1, min=1, help="Worker processes (results are identical)."),
+    scheduler: str = typer.Option(None, "--scheduler", help="Run on the Dask distributed "
+                                  "cluster at this address (tcp://host:8786) instead of local "
+                                  "processes; needs cutterpose[cluster]."),
     seed: int = typer.Option(0, help="Base seed of the trial generator."),
     progress: bool = typer.Option(True, help="Show a progress bar on stderr."),
 ):
@@ -66,7 +69,7 @@ def experiment_synthetic(
 
     meths = parse_methods(methods)
     res = run_synthetic(meths, parse_sigmas(sigmas), trials, out, seed=seed, workers=workers,
-                        trials_file=trials_file, show_progress=progress)
+                        trials_file=trials_file, show_progress=progress, scheduler=scheduler)
     typer.echo((res.out_dir / "summary.md").read_text())
     log(f"wrote {res.out_dir}/trials.csv, summary.md, summary.json, fig5.png")
 
@@ -152,6 +155,9 @@ def render_set_cmd(
     preset: str = typer.Option(None, help="Use this preset for every image (default: a mix "
                                "of easy, dim, worn, occluded, blurred, hard)."),
     workers: int = typer.Option(1, min=1, help="Worker processes (the set does not change)."),
+    scheduler: str = typer.Option(None, "--scheduler", help="Run on the Dask distributed "
+                                  "cluster at this address (tcp://host:8786) instead of local "
+                                  "processes; needs cutterpose[cluster]."),
 ):
     """Render an image set with its truth.json (PROTOCOL.md, exchange formats)."""
     from rich.progress import Progress
@@ -166,7 +172,7 @@ def render_set_cmd(
     cam = _render_camera(camera)
     with Progress(transient=True, console=None) as bar:
         task = bar.add_task("rendering", total=count)
-        path = render_set(count, seed, out, cam, mix=mix, workers=workers,
+        path = render_set(count, seed, out, cam, mix=mix, workers=workers, scheduler=scheduler,
                           progress=lambda done, n: bar.update(task, completed=done))
     typer.echo(f"wrote {count} images and {path}")
 
@@ -174,8 +180,11 @@ def render_set_cmd(
 @app.command("measure")
 @friendly
 def measure_cmd(
-    image: str = typer.Argument(..., help="Image of the holder (PNG, JPEG, TIFF...)."),
+    image: str = typer.Argument(..., help="Image of the holder (PNG, JPEG, TIFF...), or a raw "
+                                "8-bit frame (.raw with a sidecar <file>.json, or --raw)."),
     camera: str = typer.Option(None, help="table1 (default), synthetic, or a camera file."),
+    raw: str = typer.Option(None, "--raw", help="Read IMAGE as a raw Mono8 frame of "
+                            "WIDTHxHEIGHT pixels (as a GigE camera delivers it; no decode)."),
     holder: str = typer.Option(None, help="Holder JSON file (default: the bundled holder)."),
     method: str = typer.Option("dm+", help="Pose method (cutterpose.methods)."),
     overlay: str = typer.Option(None, "--overlay", help="Write an overlay PNG here."),
@@ -185,19 +194,23 @@ def measure_cmd(
 ):
     """Measure the holder's pose in one image (exit 3 when the pose is refused)."""
     import json as _json
+    import time
 
+    from .frames import load_frame, parse_raw_size
     from .geometry.holder import load_holder
-    from .image import load_image
     from .pipeline import measure
 
     cam = _render_camera(camera)
     hol = load_holder(holder) if holder else None
-    img = load_image(image)
     from .image import FeatureParams
 
     if chain not in ("field", "paper"):
         fail(f"--chain must be 'field' or 'paper', got {chain!r}")
+    t0 = time.perf_counter()
+    img = load_frame(image, cam, parse_raw_size(raw) if raw else None)
+    load_ms = (time.perf_counter() - t0) * 1e3
     m = measure(img, cam, hol, method, params=FeatureParams.for_camera(cam, chain=chain))
+    m.timings_ms = {"load": load_ms} | m.timings_ms
     if overlay:
         from .geometry.holder import default_holder
         from .overlay import write_overlay
@@ -221,6 +234,9 @@ def experiment_images_cmd(
                                 help="Comma-separated methods."),
     out: str = typer.Option("results/images", help="Output folder."),
     workers: int = typer.Option(1, min=1, help="Worker processes."),
+    scheduler: str = typer.Option(None, "--scheduler", help="Run on the Dask distributed "
+                                  "cluster at this address (tcp://host:8786) instead of local "
+                                  "processes; the set must be at the same path on every worker."),
     limit: int = typer.Option(None, help="Only the first N images."),
     no_refine: bool = typer.Option(False, "--no-refine",
                                    help="The paper's lines only (no gradient refinement)."),
@@ -235,7 +251,7 @@ def experiment_images_cmd(
     names = [m.name for m in parse_methods(methods)]
     with Progress(transient=True) as bar:
         task = bar.add_task("images", total=None)
-        run_images(folder, names, out, workers=workers, limit=limit,
+        run_images(folder, names, out, workers=workers, limit=limit, scheduler=scheduler,
                    params=FeatureParams(refine=not no_refine),
                    progress=lambda done, n: bar.update(task, completed=done, total=n))
     typer.echo(f"wrote {out}/trials.csv, summary.md, corners.csv, failures.csv")
@@ -264,6 +280,130 @@ def experiment_field_cmd(
         pairs[name] = Path(folder)
     write_field(pairs, out)
     typer.echo((Path(out) / "field.md").read_text())
+
+
+# ---- section: track, render-sequence (issue 13) -------------------------------------------
+FRAME_SUFFIXES = (".png", ".tif", ".tiff", ".bmp", ".jpg", ".jpeg", ".pgm", ".raw", ".mono8")
+
+
+def _frames(source: str, raw_size):
+    """(name, frame) of a folder of frames (sorted names) or of a video file."""
+    from pathlib import Path
+
+    from .errors import InputError
+    from .frames import load_frame
+
+    p = Path(source)
+    if p.is_dir():
+        files = sorted(q for q in p.iterdir() if q.suffix.lower() in FRAME_SUFFIXES)
+        if not files:
+            raise InputError(f"{p}: no frames ({', '.join(FRAME_SUFFIXES)})")
+        for q in files:
+            yield q.name, load_frame(q, raw_size=raw_size)
+        return
+    if not p.is_file():
+        raise InputError(f"{p}: neither a folder of frames nor a video file")
+    import cv2
+
+    cap = cv2.VideoCapture(str(p))
+    if not cap.isOpened():
+        raise InputError(f"{p}: not a readable video")
+    k = 0
+    try:
+        while True:
+            ok, frame = cap.read()
+            if not ok:
+                break
+            yield f"{p.name}#{k}", frame
+            k += 1
+    finally:
+        cap.release()
+    if k == 0:
+        raise InputError(f"{p}: the video has no frames")
+
+
+@app.command("track")
+@friendly
+def track_cmd(
+    source: str = typer.Argument(..., help="Folder of frames (sorted by name) or a video."),
+    camera: str = typer.Option(None, help="table1 (default), synthetic, or a camera file."),
+    holder: str = typer.Option(None, help="Holder JSON file (default: the bundled holder)."),
+    method: str = typer.Option("dm+", help="Pose method of the full measurement."),
+    raw: str = typer.Option(None, "--raw", help="Frames are raw Mono8 files of WIDTHxHEIGHT."),
+    filter_: bool = typer.Option(False, "--filter", help="Also report a constant-velocity "
+                                 "filtered pose (beside the raw one)."),
+    json_lines: bool = typer.Option(False, "--json-lines", help="One JSON object per frame."),
+):
+    """Track the holder through a sequence: edges predicted from the previous pose, the full
+    measurement on the first frame and whenever tracking fails (said per frame)."""
+    import json as _json
+
+    import numpy as np
+
+    from .frames import parse_raw_size
+    from .geometry.holder import load_holder
+    from .tracking import Tracker
+
+    cam = _render_camera(camera)
+    tracker = Tracker(cam, load_holder(holder) if holder else None, method, filter=filter_)
+    size = parse_raw_size(raw) if raw else None
+    modes, times = {}, []
+    for name, frame in _frames(source, size):
+        r = tracker.update(frame)
+        modes[r.mode] = modes.get(r.mode, 0) + 1
+        if r.mode == "track":
+            times.append(r.timings_ms["total"])
+        if json_lines:
+            typer.echo(_json.dumps({"file": name} | r.to_dict()))
+        else:
+            pose = ("  ".join(f"{v:8.3f}" for v in r.pose.dof) if r.pose is not None
+                    else "no pose")
+            note = f"  ({r.fallback_reason})" if r.fallback_reason and r.frame else ""
+            typer.echo(f"{name:24s} {r.mode:5s} {pose}  {r.timings_ms['total']:6.1f} ms{note}")
+    med = f", tracking median {np.median(times):.1f} ms/frame" if times else ""
+    log(f"{sum(modes.values())} frames: {modes.get('track', 0)} tracked, "
+        f"{modes.get('full', 0)} full measurements (first + fall-backs), "
+        f"{modes.get('lost', 0)} lost{med}")
+
+
+@app.command("render-sequence")
+@friendly
+def render_sequence_cmd(
+    out: str = typer.Option(..., "--out", help="Output folder (frames and truth.json)."),
+    frames: int = typer.Option(60, min=2, help="Number of frames of the approach."),
+    z_start: float = typer.Option(900.0, help="Camera-holder distance at the first frame, mm."),
+    z_end: float = typer.Option(600.0, help="Distance at the last frame, mm."),
+    preset: str = typer.Option("easy", help="Render preset (easy, dim, worn, ...)."),
+    engine: str = typer.Option("analytic", help="Render engine (analytic; pbr when wired)."),
+    seed: int = typer.Option(0, help="Seed of the surface and the noise."),
+    camera: str = typer.Option(None, help="table1 (default), synthetic, or a camera file."),
+    drop: str = typer.Option("", help="Comma-separated frame indices to drop."),
+    jump_at: int = typer.Option(None, help="From this frame on, shift the holder by --jump-mm."),
+    jump_mm: str = typer.Option("30,0,0", help="The jump X,Y,Z in mm."),
+    workers: int = typer.Option(1, min=1, help="Worker processes."),
+    scheduler: str = typer.Option(None, "--scheduler", help="Dask scheduler address."),
+):
+    """Render an approach sequence: the camera moving from --z-start to --z-end mm."""
+    from rich.progress import Progress
+
+    from .errors import InputError
+    from .render.sequence import render_sequence
+
+    try:
+        dropped = tuple(int(x) for x in drop.split(",") if x.strip())
+        jump = tuple(float(x) for x in jump_mm.split(","))
+        assert len(jump) == 3
+    except (ValueError, AssertionError):
+        raise InputError(f"--drop must be integers and --jump-mm X,Y,Z; got {drop!r}, "
+                         f"{jump_mm!r}") from None
+    with Progress(transient=True) as bar:
+        task = bar.add_task("rendering", total=frames - len(dropped))
+        path = render_sequence(out, frames, z_start, z_end, _render_camera(camera),
+                               settings=preset, seed=seed, engine_name=engine, drop=dropped,
+                               jump_at=jump_at, jump_mm=jump, workers=workers,
+                               scheduler=scheduler,
+                               progress=lambda done, n: bar.update(task, completed=done))
+    typer.echo(f"wrote {frames - len(dropped)} frames and {path}")
 
 
 # ---- section: calibrate, render-plate, camera convert (issue 6) ---------------------------

@@ -37,11 +37,12 @@ from pathlib import Path
 import numpy as np
 
 from .errors import CutterposeError, FeatureError, ImageError
+from .frames import load_frame
 from .geometry.camera import Camera, default_camera
 from .geometry.holder import Holder, default_holder
 from .geometry.pose import Pose, pixel_jacobian, rotation_from_euler_deg
 from .geometry.working_range import MotionRange
-from .image import FeatureParams, Features, detect_features, load_image
+from .image import FeatureParams, Features, detect_features
 from .methods import get_method
 from .solvers.estimate import PoseEstimate
 
@@ -325,8 +326,14 @@ def _solve(method: str, corners_px: np.ndarray, camera: Camera, holder: Holder,
         t0 = time.perf_counter()
         rng = MotionRange(center_dof=limits.range_center_dof,
                           half_width_dof=limits.range_half_width_dof)
+        # the initial pose searches the synthetic protocol's wide range, widened to cover the
+        # limits' range when that reaches beyond it (an approach from 900 mm)
+        wide = MotionRange()
+        lo = np.minimum(np.subtract(wide.center_dof, wide.half_width_dof), rng.lower)
+        hi = np.maximum(np.add(wide.center_dof, wide.half_width_dof), rng.upper)
         start = vanishing.initial_pose_paper if method == "dm-paper" else vanishing.initial_pose
-        init = start(corners_px, camera, holder)
+        init = start(corners_px, camera, holder, MotionRange(
+            center_dof=tuple((lo + hi) / 2), half_width_dof=tuple((hi - lo) / 2)))
         if not init:
             return PoseEstimate.failure(method, f"initial pose: {init.reason}")
         est = matching.distance_match(corners_px, camera, holder, init, motion_range=rng,
@@ -444,7 +451,9 @@ def measure(image, camera: Camera | None = None, holder: Holder | None = None,
 
     Parameters
     ----------
-    image : path of an image file, or a grey/colour array of the camera's size.
+    image : path of an image file or of a raw Mono8 frame (``.raw`` with its sidecar), a raw
+        8-bit frame buffer of the camera's size (bytes, bytearray, memoryview: used in place,
+        no decode), or a grey/colour array of the camera's size (:mod:`cutterpose.frames`).
     camera, holder : defaults: the Table 1 camera and ``holder.json``.
     method : a registered pose method (``dm+`` by default).
     params : image processing parameters (default: the field chain,
@@ -470,8 +479,9 @@ def measure(image, camera: Camera | None = None, holder: Holder | None = None,
     get_method(method)  # unknown names fail before any work
     t0 = time.perf_counter()
     load_ms = 0.0
-    if isinstance(image, (str, Path)):
-        image = load_image(image)
+    if not isinstance(image, np.ndarray):
+        # a file is decoded (or read raw); a raw buffer is only viewed (cutterpose.frames)
+        image = load_frame(image, camera)
         load_ms = (time.perf_counter() - t0) * 1e3
     try:
         feats = detect_features(image, camera, holder, params)

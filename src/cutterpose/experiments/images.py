@@ -22,7 +22,6 @@ import csv
 import json
 import math
 import os
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import replace
 from pathlib import Path
 
@@ -32,6 +31,7 @@ from ..errors import CutterposeError, InputError
 from ..geometry.camera import camera_from_dict
 from ..geometry.holder import Holder, default_holder, holder_from_dict
 from ..image import FeatureParams, detect_features, load_image
+from ..parallel import run_jobs
 from ..pipeline import measure_features
 from .report import summarize, trial_rows, write_summary, write_trials_csv
 
@@ -130,8 +130,12 @@ def _one_image(args):
 
 
 def run_images(folder, methods: list[str], out, workers: int = 1, params=None,
-               limit: int | None = None, progress=None) -> list[dict]:
+               limit: int | None = None, progress=None, scheduler=None) -> list[dict]:
     """Run every method on every image of a set; write the outputs (module doc) into ``out``.
+
+    Images run in this process, in ``workers`` processes or on the Dask cluster at
+    ``scheduler`` (:mod:`cutterpose.parallel`; the workers read the images, so the set must be
+    at the same path on every worker, e.g. a shared file system); the outputs are the same.
 
     Returns the summary statistics (:func:`cutterpose.experiments.report.summarize`).
     """
@@ -145,20 +149,17 @@ def run_images(folder, methods: list[str], out, workers: int = 1, params=None,
     params = params or FeatureParams()
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    jobs = [(i, e, str(folder), camera, holder, list(methods), params)
+    # the folder as the workers will see it: absolute, as on a shared file system
+    jobs = [(i, e, str(Path(folder).resolve()), camera, holder, list(methods), params)
             for i, e in enumerate(entries)]
-    results = []
-    if workers > 1:
-        with ProcessPoolExecutor(max_workers=workers) as ex:
-            for k, r in enumerate(ex.map(_one_image, jobs)):
-                results.append(r)
-                if progress:
-                    progress(k + 1, len(jobs))
-    else:
-        for k, j in enumerate(jobs):
-            results.append(_one_image(j))
-            if progress:
-                progress(k + 1, len(jobs))
+    count = [0]
+
+    def done(i, _):
+        count[0] += 1
+        if progress:
+            progress(count[0], len(jobs))
+
+    results = run_jobs(_one_image, jobs, workers, scheduler, done)
     rows = [r for res in results for r in res["rows"]]
     order = {m: k for k, m in enumerate(methods)}
     rows.sort(key=lambda r: (order[r["method"]], r["trial"]))

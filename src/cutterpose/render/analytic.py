@@ -726,7 +726,7 @@ def _paint_cutter(value: np.ndarray, pose: Pose, camera: Camera, settings: Rende
 
 def render_holder(pose: Pose | None = None, camera: Camera | None = None,
                   holder: Holder | None = None, settings: RenderSettings | str | None = None,
-                  seed: int = 0) -> Rendered:
+                  seed: int = 0, noise_seed: int | None = None) -> Rendered:
     """Render an 8-bit grey image of the holder at ``pose``.
 
     Parameters
@@ -736,6 +736,8 @@ def render_holder(pose: Pose | None = None, camera: Camera | None = None,
     holder : the holder model (default: ``holder.json``).
     settings : a :class:`RenderSettings` or the name of a preset (default ``"easy"``).
     seed : seeds every random choice (textures, occluders, noise): same seed, same image.
+    noise_seed : if given, seeds the sensor noise instead (frames of one sequence: the same
+        holder surface, fresh noise in every frame).
 
     Returns
     -------
@@ -750,6 +752,8 @@ def render_holder(pose: Pose | None = None, camera: Camera | None = None,
         settings = preset(settings)
     # children are fixed by their index: the fourth stream leaves the first three unchanged
     r_scene, r_occ, r_noise, r_field = np.random.default_rng(seed).spawn(4)
+    if noise_seed is not None:
+        r_noise = np.random.default_rng(noise_seed)
     corners_px = camera.project(pose.apply(holder.points_holder_mm))
     # top-face texels of ~0.9 pixel footprint: finer is wasted, coarser blurs the steel
     texel_mm = max(0.1, 0.9 * float(pose.t_mm[2]) / camera.focal_px)
@@ -798,30 +802,36 @@ def random_pose(rng: np.random.Generator, max_angle_deg: float = 10.0,
     return Pose.from_euler(*ang, sh[0], sh[1], 600.0 + sh[2])
 
 
-def _set_item(args) -> dict:
-    """Render image ``i`` of a set and write it; returns its ``truth.json`` entry."""
-    i, seed, out, camera, holder, names, p, max_angle_deg, max_shift_mm = args
+def _set_item(args) -> tuple[dict, bytes]:
+    """Render image ``i`` of a set; returns its ``truth.json`` entry and the PNG file's bytes
+    (the caller writes it, so workers on other machines need no access to ``out_dir``)."""
+    i, seed, camera, holder, names, p, max_angle_deg, max_shift_mm = args
     img_seed = int(np.random.SeedSequence([seed, i]).generate_state(1)[0])
     rng = np.random.default_rng(img_seed)
     pose = random_pose(rng, max_angle_deg, max_shift_mm)
     name = names[int(rng.choice(len(names), p=p))]
     r = render_holder(pose, camera, holder, PRESETS[name], seed=img_seed)
     fname = f"img_{i:04d}.png"
-    if not cv2.imwrite(str(Path(out) / fname), r.image):
-        raise InputError(f"{out}: could not write {fname}")
-    return r.truth_dict(fname)
+    ok, png = cv2.imencode(".png", r.image)
+    if not ok:  # pragma: no cover - PNG encoding of a uint8 image does not fail
+        raise InputError(f"could not encode {fname}")
+    return r.truth_dict(fname), png.tobytes()
 
 
 def render_set(count: int, seed: int, out_dir, camera: Camera | None = None,
                holder: Holder | None = None, mix=DEFAULT_MIX, max_angle_deg: float = 10.0,
-               max_shift_mm: float = 20.0, progress=None, workers: int = 1) -> Path:
+               max_shift_mm: float = 20.0, progress=None, workers: int = 1,
+               scheduler=None) -> Path:
     """Render ``count`` images at random poses into ``out_dir`` with its ``truth.json``.
 
     The difficulty of each image is drawn from ``mix`` (preset names and weights) and recorded
     under ``"difficulty"``; image ``i`` uses the seed ``SeedSequence([seed, i])``, so any image
-    can be re-rendered alone and the set does not depend on ``workers`` (processes).
+    can be re-rendered alone and the set does not depend on where it was rendered (``workers``
+    local processes or the Dask cluster at ``scheduler``, :mod:`cutterpose.parallel`).
     ``progress(done, count)`` is called after each image. Returns the path of ``truth.json``.
     """
+    from ..parallel import run_jobs
+
     if count < 1:
         raise InputError(f"count must be >= 1, got {count}")
     camera = default_camera("table1") if camera is None else camera
@@ -833,22 +843,21 @@ def render_set(count: int, seed: int, out_dir, camera: Camera | None = None,
     p /= p.sum()
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    jobs = [(i, seed, str(out), camera, holder, names, p, max_angle_deg, max_shift_mm)
+    jobs = [(i, seed, camera, holder, names, p, max_angle_deg, max_shift_mm)
             for i in range(count)]
-    images = []
-    if workers > 1:
-        from concurrent.futures import ProcessPoolExecutor
+    written = [0]
 
-        with ProcessPoolExecutor(max_workers=workers) as ex:
-            for k, entry in enumerate(ex.map(_set_item, jobs)):
-                images.append(entry)
-                if progress is not None:
-                    progress(k + 1, count)
-    else:
-        for k, job in enumerate(jobs):
-            images.append(_set_item(job))
-            if progress is not None:
-                progress(k + 1, count)
+    def write(i, result):
+        entry, png = result
+        try:
+            (out / entry["file"]).write_bytes(png)
+        except OSError as e:
+            raise InputError(f"{out}: could not write {entry['file']} ({e})") from None
+        written[0] += 1
+        if progress is not None:
+            progress(written[0], count)
+
+    images = run_jobs(_set_item, jobs, workers, scheduler, write, store=lambda r: r[0])
     doc = {"camera": camera.to_dict(), "holder": holder.to_dict(), "seed": seed,
            "presets": {n: asdict(PRESETS[n]) for n in names}, "images": images}
     path = out / "truth.json"
