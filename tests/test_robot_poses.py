@@ -10,7 +10,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from cutterpose.errors import InputError
-from cutterpose.geometry.pose import Pose
+from cutterpose.geometry.pose import Pose, rotation_from_euler_deg
 from cutterpose.robot.frames import PoseCov, cov_from_dof, cov_from_own_axes, cov_to_own_axes
 from cutterpose.robot.poses import (
     CONVENTIONS,
@@ -23,19 +23,13 @@ from cutterpose.robot.poses import (
 )
 
 
-def Rx(d):
-    c, s = math.cos(math.radians(d)), math.sin(math.radians(d))
-    return np.array([[1, 0, 0], [0, c, -s], [0, s, c]])
-
-
-def Ry(d):
-    c, s = math.cos(math.radians(d)), math.sin(math.radians(d))
-    return np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])
-
-
-def Rz(d):
-    c, s = math.cos(math.radians(d)), math.sin(math.radians(d))
-    return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
+def _axis_rot(axis: int, deg: float) -> np.ndarray:
+    """Right-handed rotation about coordinate axis 0, 1 or 2, written out by hand."""
+    c, s = math.cos(math.radians(deg)), math.sin(math.radians(deg))
+    i, j = [(1, 2), (2, 0), (0, 1)][axis]
+    R = np.eye(3)
+    R[i, i], R[i, j], R[j, i], R[j, j] = c, -s, s, c
+    return R
 
 
 # hand-computed: a quarter turn about z, with position (100, 200, 300) mm
@@ -65,7 +59,7 @@ def test_each_convention_matches_a_hand_computed_pose(conv):
 
 def test_kuka_and_fanuc_euler_orders_against_hand_products():
     # KUKA A, B, C = 30, 20, 10: Rz(30) Ry(20) Rx(10); Fanuc W, P, R = 10, 20, 30: the same
-    expect = Rz(30) @ Ry(20) @ Rx(10)
+    expect = _axis_rot(2, 30) @ _axis_rot(1, 20) @ _axis_rot(0, 10)
     k = poses_from_rows([[0, 0, 0, 30, 20, 10]], "kuka")[0]
     f = poses_from_rows([[0, 0, 0, 10, 20, 30]], "fanuc")[0]
     np.testing.assert_allclose(k.R, expect, atol=1e-12)
@@ -105,25 +99,19 @@ def test_protocol_file_is_exactly_the_protocol_header(tmp_path):
     np.testing.assert_allclose(read_poses(p)[0].R, RZ90, atol=1e-12)
 
 
-def test_file_without_convention_is_rejected_naming_it(tmp_path):
-    f = tmp_path / "kuka.csv"
-    f.write_text("x_mm,y_mm,z_mm,a_deg,b_deg,c_deg\n1,2,3,4,5,6\n")
-    with pytest.raises(InputError, match="no pose convention.*# convention"):
+@pytest.mark.parametrize("text, missing, fix, x_mm", [
+    ("x_mm,y_mm,z_mm,a_deg,b_deg,c_deg\n1,2,3,4,5,6\n", "no pose convention.*# convention",
+     {"convention": "kuka"}, 1.0),
+    ("x,y,z,qx,qy,qz,qw\n1,2,3,0,0,0,1\n", "no length unit", {"length_unit": "mm"}, 1.0),
+    ("# convention: ur\n# length_unit: m\nx,y,z,rx,ry,rz\n1,2,3,0,0,1\n", "no angle unit",
+     {"angle_unit": "rad"}, 1000.0),
+])
+def test_ambiguous_file_is_rejected_naming_what_to_add(tmp_path, text, missing, fix, x_mm):
+    f = tmp_path / "poses.csv"
+    f.write_text(text)
+    with pytest.raises(InputError, match=missing):
         read_poses(f)
-    # the caller may state it instead
-    assert read_poses(f, convention="kuka")[0].t_mm[2] == 3.0
-
-
-def test_file_without_units_is_rejected_naming_them(tmp_path):
-    f = tmp_path / "q.csv"
-    f.write_text("x,y,z,qx,qy,qz,qw\n1,2,3,0,0,0,1\n")
-    with pytest.raises(InputError, match="no length unit"):
-        read_poses(f)
-    g = tmp_path / "ur.csv"
-    g.write_text("# convention: ur\n# length_unit: m\nx,y,z,rx,ry,rz\n1,2,3,0,0,1\n")
-    with pytest.raises(InputError, match="no angle unit"):
-        read_poses(g)
-    assert read_poses(g, angle_unit="rad")[0].t_mm[0] == 1000.0
+    assert read_poses(f, **fix)[0].t_mm[0] == x_mm  # stated by the caller instead
 
 
 def test_contradictions_and_bad_rows_are_errors(tmp_path):
@@ -153,11 +141,6 @@ def test_json_keyed_poses_and_inline_row(tmp_path):
 
 
 # ------------------------------------------------------------------------------------------
-def _perturb(pose: Pose, d: np.ndarray) -> Pose:
-    return Pose(Rotation.from_rotvec(d[3:]).as_matrix() @ pose.R, pose.t_mm + d[:3],
-                pose.to_frame, pose.from_frame)
-
-
 def test_covariance_propagation_matches_monte_carlo():
     rng = np.random.default_rng(0)
     A = Pose(Rotation.from_euler("xyz", [20, -40, 70], degrees=True).as_matrix(),
@@ -173,15 +156,17 @@ def test_covariance_propagation_matches_monte_carlo():
     n = 20000
     da = rng.multivariate_normal(np.zeros(6), Ca, n)
     db = rng.multivariate_normal(np.zeros(6), Cb, n)
-    d_ac, d_inv = np.empty((n, 6)), np.empty((n, 6))
+    Ra = Rotation.from_rotvec(da[:, 3:]).as_matrix() @ A.R
+    Rb = Rotation.from_rotvec(db[:, 3:]).as_matrix() @ B.R
+    R = Ra @ Rb
+    t = np.einsum("nij,nj->ni", Ra, B.t_mm + db[:, :3]) + A.t_mm + da[:, :3]
+    d_ac = np.concatenate([t - pc.pose.t_mm,
+                           Rotation.from_matrix(R @ pc.pose.R.T).as_rotvec()], axis=1)
+    Ri = np.swapaxes(R, 1, 2)
+    ti = -np.einsum("nij,nj->ni", Ri, t)
     Tinv = pc.pose.inverse()
-    for k in range(n):
-        T = _perturb(A, da[k]) @ _perturb(B, db[k])
-        d_ac[k, :3] = T.t_mm - pc.pose.t_mm
-        d_ac[k, 3:] = Rotation.from_matrix(T.R @ pc.pose.R.T).as_rotvec()
-        Ti = T.inverse()
-        d_inv[k, :3] = Ti.t_mm - Tinv.t_mm
-        d_inv[k, 3:] = Rotation.from_matrix(Ti.R @ Tinv.R.T).as_rotvec()
+    d_inv = np.concatenate([ti - Tinv.t_mm, Rotation.from_matrix(Ri @ Tinv.R.T).as_rotvec()],
+                           axis=1)
     sd = np.sqrt(np.diag(pc.cov))
     np.testing.assert_allclose(np.std(d_ac, axis=0), sd, rtol=0.05)
     np.testing.assert_allclose(np.std(d_inv, axis=0), np.sqrt(np.diag(inv.cov)), rtol=0.05)
@@ -207,8 +192,9 @@ def test_own_axes_and_dof_covariances():
     cov_dof = np.diag([0.01, 0.02, 0.03, 0.1, 0.2, 0.3]) ** 2
     c = cov_from_dof(P, cov_dof)
     samples = rng.multivariate_normal(np.zeros(6), cov_dof, 4000)
-    phis = np.array([Rotation.from_matrix(Pose.from_euler(*(P.dof + s)).R @ P.R.T).as_rotvec()
-                     for s in samples])
+    e = P.dof[:3] + samples[:, :3]
+    phis = Rotation.from_matrix(rotation_from_euler_deg(e[:, 0], e[:, 1], e[:, 2])
+                                @ P.R.T).as_rotvec()
     sd = np.sqrt(np.diag(c[3:, 3:]))
     np.testing.assert_allclose(np.cov(phis.T) / np.outer(sd, sd), c[3:, 3:] / np.outer(sd, sd),
                                atol=0.08)
