@@ -272,8 +272,24 @@ def render_plate_cmd(
     spacing_mm: float = typer.Option(30.0, help="Circle spacing in mm."),
     diameter_mm: float = typer.Option(15.0, help="Circle diameter in mm."),
     distance_mm: str = typer.Option("400,700", help="Range of plate distances in mm."),
+    robot_cell: bool = typer.Option(False, "--robot-cell", help="Hand-eye mode: a simulated "
+                                    "robot cell (random camera mount, fixed plate) moves the "
+                                    "camera through COUNT stations; writes robot_poses.csv "
+                                    "(reported flange poses) and cell_truth.json."),
+    repeatability_mm: float = typer.Option(0.03, help="--robot-cell: robot position noise, "
+                                           "mm per axis (1 sigma)."),
+    repeatability_deg: float = typer.Option(0.005, help="--robot-cell: robot rotation noise, "
+                                            "deg per axis (1 sigma)."),
+    plate_poses: str = typer.Option(None, "--plate-poses", help="Render one image per pose "
+                                    "of this pose file (T_cam_plate, any convention of "
+                                    "`cutterpose.robot.poses`) instead of drawing poses."),
+    convention: str = typer.Option(None, help="--plate-poses: pose convention if the file "
+                                   "does not state it."),
+    length_unit: str = typer.Option(None, help="--plate-poses: mm or m, if not stated."),
+    angle_unit: str = typer.Option(None, help="--plate-poses: deg or rad, if not stated."),
 ):
-    """Render images of the circle calibration plate at poses that cover the field."""
+    """Render images of the circle calibration plate at poses that cover the field, at given
+    poses (--plate-poses), or from the stations of a simulated robot cell (--robot-cell)."""
     import json
     from pathlib import Path
 
@@ -294,7 +310,26 @@ def render_plate_cmd(
     cam = _render_camera(camera)
     folder = Path(out)
     folder.mkdir(parents=True, exist_ok=True)
-    poses = sample_plate_poses(cam, count, plate, distance_mm=dist, seed=seed)
+    if robot_cell:
+        from .robot.cell import RobotCell
+
+        if plate_poses:
+            raise InputError("give either --robot-cell or --plate-poses, not both")
+        cell = RobotCell.random(cam, seed, repeatability_mm=repeatability_mm,
+                                repeatability_deg=repeatability_deg)
+        cell.plate = plate
+        cell.write_handeye_set(folder, count, seed, settings,
+                               progress=lambda k, n: log(f"station {k}/{n}"))
+        typer.echo(f"wrote {count} plate images, robot_poses.csv, plate.json, camera.json and "
+                   f"cell_truth.json to {folder}")
+        return
+    if plate_poses:
+        from .robot.poses import read_poses
+
+        poses = read_poses(plate_poses, convention, length_unit, angle_unit, "cam", "plate")
+        count = len(poses)
+    else:
+        poses = sample_plate_poses(cam, count, plate, distance_mm=dist, seed=seed)
     rng = np.random.default_rng(seed)
     images = []
     for k, pose in enumerate(poses):
@@ -339,15 +374,7 @@ def calibrate_cmd(
     from .geometry.camera_files import convert_camera, detect_format, write_camera
 
     plate = _plate_from_options(plate_file, grid, spacing_mm, diameter_mm)
-    paths = []
-    for a in images:
-        p = Path(a)
-        if p.is_dir():
-            paths += sorted(q for q in p.iterdir()
-                            if q.suffix.lower() in (".png", ".jpg", ".jpeg", ".bmp", ".tif",
-                                                    ".tiff"))
-        else:
-            paths.append(p)
+    paths = _image_paths(images)
     fmt = detect_format(out, for_writing=True)
 
     def progress(name, reason):
@@ -384,6 +411,85 @@ def calibrate_cmd(
         typer.echo(f"note: {fmt} cannot hold the {res.camera.model} model; wrote the nearest "
                    f"{conv.camera.model} camera (worst pixel error {conv.max_error_px:.4f} px)")
     typer.echo(f"wrote {out} and {rep_path}")
+
+
+def _image_paths(items) -> list:
+    """Image files from files and folders (a folder's images in sorted order)."""
+    from pathlib import Path
+
+    paths = []
+    for a in items:
+        p = Path(a)
+        if p.is_dir():
+            paths += sorted(q for q in p.iterdir()
+                            if q.suffix.lower() in (".png", ".jpg", ".jpeg", ".bmp", ".tif",
+                                                    ".tiff"))
+        else:
+            paths.append(p)
+    return paths
+
+
+# ---- section: handeye (issue 11) ----------------------------------------------------------
+@app.command("handeye")
+@friendly
+def handeye_cmd(
+    images: list[str] = typer.Argument(..., help="Plate images, one per station (files or "
+                                       "folders; sorted by name)."),
+    robot_poses: str = typer.Option(..., "--robot-poses", help="Flange poses T_base_flange, "
+                                    "one per image in the images' order (PROTOCOL pose file "
+                                    "or a vendor convention, see docs/robot.md)."),
+    out: str = typer.Option(..., "--out", help="Hand-eye file to write (handeye.json)."),
+    camera: str = typer.Option(None, help="table1 (default), synthetic, or a camera file."),
+    plate_file: str = typer.Option(None, "--plate", help="plate.json (default: the 7x7 "
+                                   "30 mm plate)."),
+    convention: str = typer.Option(None, help="Pose convention, if the file does not state "
+                                   "it: protocol, quat-xyzw, quat-wxyz, abb, ur, rotvec, kuka, "
+                                   "fanuc, matrix."),
+    length_unit: str = typer.Option(None, help="mm or m, if the file does not state it."),
+    angle_unit: str = typer.Option(None, help="deg or rad, if the file does not state it."),
+    repeatability_mm: float = typer.Option(0.03, help="Robot position noise, mm per axis."),
+    repeatability_deg: float = typer.Option(0.005, help="Robot rotation noise, deg per axis."),
+    as_json: bool = typer.Option(False, "--json", help="Print the result as JSON."),
+):
+    """Eye-in-hand calibration: T_flange_cam and T_base_plate from plate images and flange
+    poses (OpenCV starts, joint refinement on the reprojection error); exit 3 if poor."""
+    import json
+
+    from .calibration.handeye import handeye_from_images, save_handeye
+    from .calibration.plate import CirclePlate, load_plate
+    from .robot.poses import read_poses
+
+    cam = _render_camera(camera)
+    plate = load_plate(plate_file) if plate_file else CirclePlate()
+    poses = read_poses(robot_poses, convention, length_unit, angle_unit)
+
+    def progress(name, reason):
+        if reason:
+            log(f"warning: {name} skipped (and its robot pose): {reason}")
+
+    res = handeye_from_images(_image_paths(images), poses, cam, plate, progress=progress,
+                              repeatability_mm=repeatability_mm,
+                              repeatability_deg=repeatability_deg)
+    save_handeye(res, out)
+    if as_json:
+        typer.echo(json.dumps(res.to_dict(), indent=1))
+    else:
+        X = res.T_flange_cam
+        a, b, g = X.euler_deg
+        typer.echo(f"T_flange_cam: t = {X.t_mm.round(3).tolist()} mm, alpha/beta/gamma = "
+                   f"{a:.4f} {b:.4f} {g:.4f} deg (start: {res.start_method})")
+        sd = res.handeye.covariance.diagonal() ** 0.5
+        typer.echo(f"std: {sd[:3].round(4).tolist()} mm, "
+                   f"{(sd[3:] * 57.29577951308232).round(5).tolist()} deg")
+        typer.echo(f"{'station':24s} {'used':>4s} {'rms px':>7s} {'plate mm':>9s} "
+                   f"{'plate deg':>9s}  distrust")
+        for st in res.stations:
+            typer.echo(f"{st.name:24s} {'yes' if st.used else 'NO':>4s} {st.rms_px:7.3f} "
+                       f"{st.position_mm:9.3f} {st.angle_deg:9.4f}  {st.distrust}")
+        typer.echo(res.verdict)
+        log(f"wrote {out}")
+    if not res.ok:
+        fail(f"hand-eye calibration {res.verdict}", code=3)
 
 
 @camera_app.command("convert")

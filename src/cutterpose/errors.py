@@ -47,3 +47,7 @@ class FeatureError(CutterposeError):
 
 class NoSolutionError(CutterposeError):
     """A solver found no admissible pose."""
+
+
+class HandEyeFileError(ModelFileError):
+    """A hand-eye file (``handeye.json``) is missing or malformed."""
