@@ -24,27 +24,14 @@ from cutterpose.calibration.handeye import (
 from cutterpose.calibration.intrinsics import detect_plate
 from cutterpose.cli import app
 from cutterpose.errors import DegenerateInputError, HandEyeFileError
-from cutterpose.geometry.camera import DivisionCamera, default_camera
 from cutterpose.geometry.pose import Pose, geodesic_deg
 from cutterpose.robot.cell import RobotCell
 
 
-def quarter_camera() -> DivisionCamera:
-    full = default_camera("table1")
-    s = 4
-    return DivisionCamera(full.focal_length_m, full.kappa_per_m2,
-                          tuple(np.array(full.pixel_size_m) * s),
-                          tuple((np.array(full.principal_point_px) + 0.5) / s - 0.5),
-                          (full.image_size_px[0] // s, full.image_size_px[1] // s))
-
-
-CAM = quarter_camera()
-
-
 @pytest.fixture(scope="module")
-def cell_data():
+def cell_data(cam_quarter):
     """Ten stations of a random cell: true and reported flange poses, detected circles."""
-    cell = RobotCell.random(CAM, seed=3)
+    cell = RobotCell.random(cam_quarter, seed=3)
     true = cell.plate_stations(10, seed=3)
     reported = cell.report(true, np.random.default_rng(4))
     rng = np.random.default_rng(5)
@@ -58,7 +45,7 @@ def _err(X: Pose, truth: Pose) -> tuple[float, float]:
 
 def test_refined_handeye_is_close_to_the_truth(cell_data):
     cell, _, reported, pts = cell_data
-    r = calibrate_handeye(reported, pts, CAM, cell.plate)
+    r = calibrate_handeye(reported, pts, cell.camera, cell.plate)
     e_mm, e_deg = _err(r.T_flange_cam, cell.T_flange_cam)
     assert e_mm < 0.15 and e_deg < 0.02, (e_mm, e_deg)
     assert r.ok and r.verdict.startswith("good")
@@ -74,7 +61,7 @@ def test_corrupted_station_is_distrusted(cell_data):
     cell, _, reported, pts = cell_data
     bad = list(reported)
     bad[4] = Pose(bad[4].R, bad[4].t_mm + [3.0, 4.0, 0.0], "base", "flange")  # 5 mm off
-    r = calibrate_handeye(bad, pts, CAM, cell.plate)
+    r = calibrate_handeye(bad, pts, cell.camera, cell.plate)
     st = r.stations[4]
     assert not st.used and "outlier" in st.distrust and 4.0 < st.position_mm < 6.0
     assert sum(not s.used for s in r.stations) <= 2
@@ -84,22 +71,22 @@ def test_corrupted_station_is_distrusted(cell_data):
 def test_degenerate_stations_are_typed_errors(cell_data):
     cell, _, reported, pts = cell_data
     with pytest.raises(DegenerateInputError, match="at least 3 stations"):
-        calibrate_handeye(reported[:2], pts[:2], CAM, cell.plate)
+        calibrate_handeye(reported[:2], pts[:2], cell.camera, cell.plate)
     # the same orientation everywhere: translations only
     still = [Pose(reported[0].R, a.t_mm, "base", "flange") for a in reported]
     with pytest.raises(DegenerateInputError, match="do not rotate"):
-        calibrate_handeye(still, pts, CAM, cell.plate)
+        calibrate_handeye(still, pts, cell.camera, cell.plate)
     # rotations about one axis only
     R0 = reported[0].R
     spin = [Pose(R0 @ Rotation.from_euler("z", 20 * k, degrees=True).as_matrix(), a.t_mm,
                  "base", "flange") for k, a in enumerate(reported)]
     with pytest.raises(DegenerateInputError, match="about one axis"):
-        calibrate_handeye(spin, pts, CAM, cell.plate)
+        calibrate_handeye(spin, pts, cell.camera, cell.plate)
 
 
 @pytest.mark.parametrize("method", NUMPY_METHODS)
-def test_numpy_starts_are_exact_on_exact_data(method):
-    cell = RobotCell.random(CAM, seed=8)
+def test_numpy_starts_are_exact_on_exact_data(method, cam_quarter):
+    cell = RobotCell.random(cam_quarter, seed=8)
     A = cell.plate_stations(6, seed=8)
     B = [cell.camera_view(a, cell.T_base_plate) for a in A]
     X, Y = _numpy_start(method, A, B)
@@ -109,7 +96,7 @@ def test_numpy_starts_are_exact_on_exact_data(method):
 
 def test_handeye_file_round_trip_and_errors(tmp_path, cell_data):
     cell, _, reported, pts = cell_data
-    r = calibrate_handeye(reported, pts, CAM, cell.plate)
+    r = calibrate_handeye(reported, pts, cell.camera, cell.plate)
     path = save_handeye(r, tmp_path / "handeye.json")
     he = load_handeye(path)
     np.testing.assert_allclose(he.T_flange_cam.matrix, r.T_flange_cam.matrix)
@@ -127,10 +114,10 @@ def test_handeye_file_round_trip_and_errors(tmp_path, cell_data):
         load_handeye(tmp_path / "bad.json")
 
 
-def test_cli_robot_cell_and_handeye(tmp_path):
+def test_cli_robot_cell_and_handeye(tmp_path, cam_quarter):
     runner = CliRunner()
     cam_file = tmp_path / "cam.json"
-    cam_file.write_text(json.dumps(CAM.to_dict()))
+    cam_file.write_text(json.dumps(cam_quarter.to_dict()))
     cell_dir = tmp_path / "cell"
     res = runner.invoke(app, ["render-plate", "--robot-cell", "--count", "6", "--seed", "2",
                               "--camera", str(cam_file), "--out", str(cell_dir)])

@@ -180,18 +180,54 @@ def measure_cmd(
     method: str = typer.Option("dm+", help="Pose method (cutterpose.methods)."),
     overlay: str = typer.Option(None, "--overlay", help="Write an overlay PNG here."),
     as_json: bool = typer.Option(False, "--json", help="One JSON object on stdout."),
+    handeye: str = typer.Option(None, "--handeye", help="handeye.json: also answer in the "
+                                "robot's base frame (needs --flange-pose)."),
+    flange_pose: str = typer.Option(None, "--flange-pose", help="T_base_flange at the "
+                                    "picture: a one-row pose file or x_mm,y_mm,z_mm,qx,qy,qz,"
+                                    "qw inline."),
+    convention: str = typer.Option(None, help="Convention of a --flange-pose file that does "
+                                   "not state it."),
+    length_unit: str = typer.Option(None, help="mm or m, for a --flange-pose file."),
+    angle_unit: str = typer.Option(None, help="deg or rad, for a --flange-pose file."),
+    robot_accuracy_mm: float = typer.Option(0.05, help="Robot position error, mm per axis "
+                                            "(1 sigma)."),
+    robot_accuracy_deg: float = typer.Option(0.01, help="Robot angle error, deg per axis "
+                                             "(1 sigma)."),
+    position_tol_mm: float = typer.Option(1.0, help="Grasp tolerance on the 3-sigma "
+                                          "position bound, mm."),
+    angle_tol_deg: float = typer.Option(None, help="Grasp tolerance on the 3-sigma angle "
+                                        "bound, deg (default: position tolerance at the "
+                                        "17-inch cutter's 216 mm radius, 0.265 deg)."),
 ):
-    """Measure the holder's pose in one image (exit 3 when the pose is refused)."""
+    """Measure the holder's pose in one image (exit 3 when the pose is refused); with
+    --handeye and --flange-pose also in the robot's base frame with the grasp verdict (exit 4
+    on retake)."""
     import json as _json
 
-    from .geometry.holder import load_holder
+    from .errors import InputError
+    from .geometry.holder import default_holder, load_holder
     from .image import load_image
     from .pipeline import measure
 
     cam = _render_camera(camera)
     hol = load_holder(holder) if holder else None
+    if (handeye is None) != (flange_pose is None):
+        raise InputError("the base frame needs both --handeye and --flange-pose")
+    robot = None
+    if handeye is not None:
+        from .robot import GraspTolerance, RobotAccuracy, load_flange_pose, load_handeye
+
+        robot = (load_handeye(handeye),
+                 load_flange_pose(flange_pose, convention, length_unit, angle_unit),
+                 RobotAccuracy(robot_accuracy_mm, robot_accuracy_deg),
+                 GraspTolerance(position_tol_mm, angle_deg=angle_tol_deg))
     img = load_image(image)
     m = measure(img, cam, hol, method)
+    if robot is not None:
+        from .robot import locate
+
+        m.robot = locate(m, robot[0], robot[1], robot[2], camera=cam,
+                         holder=hol or default_holder(), tolerance=robot[3])
     if overlay:
         from .geometry.holder import default_holder
         from .overlay import write_overlay
@@ -200,11 +236,36 @@ def measure_cmd(
         log(f"wrote {overlay}")
     if as_json:
         typer.echo(_json.dumps(m.to_dict()))
-    elif m.pose is not None:
-        typer.echo("\n".join(m.pose_lines()))
-        typer.echo("time: " + ", ".join(f"{k} {v:.0f} ms" for k, v in m.timings_ms.items()))
+    else:
+        if m.pose is not None:
+            typer.echo("\n".join(m.pose_lines()))
+            typer.echo("time: " + ", ".join(f"{k} {v:.0f} ms" for k, v in m.timings_ms.items()))
+        if m.robot is not None:
+            typer.echo("\n".join(_robot_lines(m.robot)))
     if not m.ok:
         fail(f"pose refused: {m.quality.reason}", code=3)
+    if m.robot is not None and not m.robot.grasp.ok:
+        fail(f"retake: {m.robot.grasp.reason} -- {m.robot.grasp.hint}", code=4)
+
+
+def _robot_lines(r) -> list[str]:
+    """The base-frame answer in a few lines."""
+    out = []
+    for name, pc in (("T_base_holder", r.T_base_holder), ("T_base_grasp", r.T_base_grasp)):
+        if pc is not None:
+            a, b, g = pc.pose.euler_deg
+            x, y, z = pc.pose.t_mm
+            out.append(f"{name}: X {x:9.2f}  Y {y:9.2f}  Z {z:9.2f} mm   alpha {a:8.3f}  beta "
+                       f"{b:8.3f}  gamma {g:8.3f} deg")
+    v = r.grasp
+    out.append(f"grasp verdict: {v.verdict.upper()}  (3-sigma {v.position_3sigma_mm:.3f} mm / "
+               f"{v.angle_3sigma_deg:.3f} deg; tolerance {v.tolerance.position_mm:g} mm / "
+               f"{v.tolerance.angle_limit_deg:.3f} deg)")
+    if v.reason:
+        out.append(f"  reason: {v.reason}")
+    if v.hint:
+        out.append(f"  hint: {v.hint}")
+    return out
 
 
 @experiment_app.command("images")
