@@ -117,29 +117,64 @@ def render_cmd(
     holder: str = typer.Option(None, help="Holder JSON file (default: the bundled holder)."),
     pocket_depth: float = typer.Option(None, help="Pocket depth in mm (preset: 80)."),
     truth: bool = typer.Option(True, help="Also write <stem>.truth.json beside the image."),
+    flange_pose: str = typer.Option(None, "--flange-pose", help="Robot cell: the true "
+                                    "T_base_flange (pose file row or x_mm,y_mm,z_mm,qx,qy,qz,"
+                                    "qw); needs --handeye and --holder-base-pose, replaces "
+                                    "--pose."),
+    handeye: str = typer.Option(None, "--handeye", help="Robot cell: handeye.json with the "
+                                "true T_flange_cam."),
+    holder_base_pose: str = typer.Option(None, "--holder-base-pose", help="Robot cell: the "
+                                         "holder in the base frame, x_mm,y_mm,z_mm,qx,qy,qz,"
+                                         "qw or a one-row pose file."),
 ):
-    """Render one realistic image of the holder at a pose."""
+    """Render one realistic image of the holder at a pose (camera frame), or as the camera on
+    a robot's flange sees a holder at a known base-frame pose."""
     from .errors import InputError
     from .geometry.holder import load_holder
     from .geometry.pose import Pose
     from .render.analytic import preset as get_preset
     from .render.analytic import render_holder, save_rendered
 
-    try:
-        dof = [float(x) for x in pose.split(",")]
-    except ValueError:
-        dof = []
-    if len(dof) != 6:
-        raise InputError(f"--pose needs six comma-separated numbers alpha,beta,gamma,X,Y,Z; "
-                         f"got {pose!r}")
+    cell = (flange_pose, handeye, holder_base_pose)
+    if any(v is not None for v in cell):
+        from .calibration.handeye import load_handeye
+        from .robot.poses import load_flange_pose, read_poses
+
+        if any(v is None for v in cell):
+            raise InputError("a robot-cell render needs --flange-pose, --handeye and "
+                             "--holder-base-pose together")
+        X = load_handeye(handeye).T_flange_cam
+        hp = holder_base_pose
+        T_bh = (parse_row_or_file(hp, read_poses, "holder") if hp.lower().endswith(
+            (".csv", ".json")) else load_flange_pose(hp).with_frames("base", "holder"))
+        T_ch = X.inverse() @ load_flange_pose(flange_pose).inverse() @ T_bh
+    else:
+        try:
+            dof = [float(x) for x in pose.split(",")]
+        except ValueError:
+            dof = []
+        if len(dof) != 6:
+            raise InputError(f"--pose needs six comma-separated numbers alpha,beta,gamma,X,Y,"
+                             f"Z; got {pose!r}")
+        T_ch = Pose.from_euler(*dof)
     cam = _render_camera(camera)
     settings = get_preset(preset)
     if pocket_depth is not None:
         settings = settings.with_(pocket_depth_mm=pocket_depth)
-    r = render_holder(Pose.from_euler(*dof), cam, load_holder(holder) if holder else None,
-                      settings, seed=seed)
+    r = render_holder(T_ch.with_frames("cam", "holder"), cam,
+                      load_holder(holder) if holder else None, settings, seed=seed)
     path = save_rendered(r, out, cam, truth=truth)
     typer.echo(f"wrote {path}" + (f" and {path.with_suffix('.truth.json')}" if truth else ""))
+
+
+def parse_row_or_file(path: str, read_poses, frame: str):
+    """The single pose of a one-row pose file, as ``T_base_<frame>``."""
+    from .errors import InputError
+
+    poses = read_poses(path, to_frame="base", from_frame=frame)
+    if len(poses) != 1:
+        raise InputError(f"{path}: expected one pose, got {len(poses)}")
+    return poses[0]
 
 
 @app.command("render-set")

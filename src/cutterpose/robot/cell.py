@@ -112,6 +112,13 @@ class RobotCell:
         return [self.flange_for(random_pose(rng, max_angle_deg, max_shift_mm), T_base_holder)
                 for _ in range(count)]
 
+    @staticmethod
+    def holder_in_base() -> Pose:
+        """A holder on the cutterhead in front of the robot: its Z along base +x (its face
+        towards the robot), X along base y, 1.5 m ahead and 0.8 m up."""
+        R = np.column_stack([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [1.0, 0.0, 0.0]])
+        return Pose(R, [1500.0, 100.0, 800.0], "base", "holder")
+
     def report(self, T_base_flange: list[Pose], rng: np.random.Generator) -> list[Pose]:
         """What the controller reports for the true flange poses (repeatability error)."""
         return [perturb_pose(p, rng, self.repeatability_mm, self.repeatability_deg)
@@ -134,7 +141,11 @@ class RobotCell:
                           progress=None) -> Path:
         """Render ``count`` stations into ``out_dir``: ``plate_NNNN.png``, the reported flange
         poses ``robot_poses.csv`` (PROTOCOL pose file), ``plate.json``, ``camera.json`` and
-        ``cell_truth.json`` (true transforms and flange poses). Returns the folder."""
+        ``cell_truth.json`` (true transforms and flange poses); and, for a holder measurement,
+        ``holder_base_pose.csv`` (the true ``T_base_holder``), ``holder_station_true.csv`` and
+        ``holder_station.csv`` (the true and the reported flange pose of a station that sees
+        it), ``handeye_true.json`` (the true hand-eye transform, zero covariance, to render
+        with). Returns the folder."""
         from ..calibration.plate import save_plate
         from ..robot.poses import write_poses
 
@@ -151,9 +162,20 @@ class RobotCell:
             if progress is not None:
                 progress(k + 1, count)
         write_poses(out / "robot_poses.csv", reported)
+        # a holder on the cutterhead and a station that sees it at the nominal pose, for the
+        # worked example of docs/robot.md (true and reported flange pose)
+        T_bh = self.holder_in_base()
+        station = self.flange_for(Pose.from_euler(2.0, -3.0, 4.0, 8.0, -6.0, 612.0), T_bh)
+        write_poses(out / "holder_base_pose.csv", [T_bh])
+        write_poses(out / "holder_station_true.csv", [station])
+        write_poses(out / "holder_station.csv", self.report([station], rng))
         save_plate(self.plate, out / "plate.json")
         (out / "camera.json").write_text(json.dumps(self.camera.to_dict(), indent=1) + "\n")
         doc = self.truth_dict() | {"seed": seed,
                                    "T_base_flange_true": [a.matrix.tolist() for a in true]}
         (out / "cell_truth.json").write_text(json.dumps(doc, indent=1) + "\n")
+        from ..calibration.handeye import HandEye, save_handeye
+
+        save_handeye(HandEye(self.T_flange_cam, self.T_base_plate, np.zeros((6, 6))),
+                     out / "handeye_true.json")
         return out
