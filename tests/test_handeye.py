@@ -139,3 +139,18 @@ def test_cli_robot_cell_and_handeye(tmp_path, cam_quarter):
                               str(tmp_path / "short.csv"), "--camera", str(cam_file),
                               "--out", str(out)])
     assert res.exit_code == 2 and "6 plate images but 5 robot poses" in res.output
+
+
+def test_cli_render_plate_at_given_poses(tmp_path, cam_quarter):
+    from cutterpose.robot.poses import write_poses
+
+    cam_file = tmp_path / "cam.json"
+    cam_file.write_text(json.dumps(cam_quarter.to_dict()))
+    pose = Pose.from_euler(10, -15, 30, 20, -10, 550, to_frame="cam", from_frame="plate")
+    write_poses(tmp_path / "views.csv", [pose], "kuka")
+    res = CliRunner().invoke(app, ["render-plate", "--plate-poses", str(tmp_path / "views.csv"),
+                                   "--camera", str(cam_file), "--out", str(tmp_path / "p")])
+    assert res.exit_code == 0, res.output
+    truth = json.loads((tmp_path / "p" / "truth.json").read_text())
+    assert len(truth["images"]) == 1
+    np.testing.assert_allclose(truth["images"][0]["t_cam_plate_mm"], pose.t_mm, atol=1e-9)
