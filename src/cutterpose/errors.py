@@ -55,3 +55,7 @@ class DependencyError(CutterposeError):
 
 class ClusterError(CutterposeError):
     """A Dask cluster cannot be reached, or its workers cannot run the jobs."""
+
+
+class HandEyeFileError(ModelFileError):
+    """A hand-eye file (``handeye.json``) is missing or malformed."""

@@ -119,6 +119,9 @@ class Measurement:
     features: Features | None = None
     estimate: PoseEstimate | None = None
     timings_ms: dict = field(default_factory=dict)
+    #: the base-frame answer (:class:`cutterpose.robot.RobotResult`) when :func:`measure` got a
+    #: hand-eye file and a flange pose
+    robot: object | None = None
 
     @property
     def ok(self) -> bool:
@@ -150,6 +153,8 @@ class Measurement:
                              "threshold": f.threshold, "refined": f.refined,
                              "n_segments": len(f.segments), "segmentation": f.segmentation,
                              "order": f.order, "visible": np.asarray(f.visible).tolist()}
+        if self.robot is not None:
+            d.update(self.robot.to_dict())
         return d
 
 
@@ -446,8 +451,10 @@ def measure_features(features: Features, camera: Camera, holder: Holder, method:
 
 def measure(image, camera: Camera | None = None, holder: Holder | None = None,
             method: str = "dm+", params: FeatureParams | None = None,
-            limits: QualityLimits | None = None) -> Measurement:
-    """Measure the holder's pose in one image.
+            limits: QualityLimits | None = None, *, handeye=None, T_base_flange=None,
+            robot_accuracy=None) -> Measurement:
+    """Measure the holder's pose in one image (and, given ``handeye`` and ``T_base_flange``,
+    in the robot's base frame: :func:`cutterpose.robot.locate`, result in ``.robot``).
 
     Parameters
     ----------
@@ -459,6 +466,7 @@ def measure(image, camera: Camera | None = None, holder: Holder | None = None,
     params : image processing parameters (default: the field chain,
         ``FeatureParams.for_camera(camera)``; ``FeatureParams.paper()`` for section 2.1's).
     limits : when to refuse a pose.
+    handeye, T_base_flange, robot_accuracy : see :func:`cutterpose.robot.locate`.
 
     Returns
     -------
@@ -488,12 +496,27 @@ def measure(image, camera: Camera | None = None, holder: Holder | None = None,
     except FeatureError as e:
         timings = {"load": load_ms} if load_ms else {}
         timings["total"] = (time.perf_counter() - t0) * 1e3
-        return Measurement(method, None, np.full(6, np.nan), Quality(False, str(e)),
-                           timings_ms=timings)
+        return _with_robot(Measurement(method, None, np.full(6, np.nan), Quality(False, str(e)),
+                                       timings_ms=timings),
+                           camera, holder, handeye, T_base_flange, robot_accuracy)
     m = measure_features(feats, camera, holder, method, limits)
     if load_ms:
         m.timings_ms = {"load": load_ms} | m.timings_ms
     m.timings_ms["total"] = (time.perf_counter() - t0) * 1e3
+    return _with_robot(m, camera, holder, handeye, T_base_flange, robot_accuracy)
+
+
+def _with_robot(m: Measurement, camera, holder, handeye, T_base_flange, robot_accuracy):
+    """Attach the base-frame answer when both a hand-eye file and a flange pose are given."""
+    if handeye is None and T_base_flange is None:
+        return m
+    if handeye is None or T_base_flange is None:
+        from .errors import InputError
+
+        raise InputError("the base frame needs both a hand-eye file and a flange pose")
+    from .robot.locate import locate
+
+    m.robot = locate(m, handeye, T_base_flange, robot_accuracy, camera=camera, holder=holder)
     return m
 
 
