@@ -16,13 +16,19 @@ from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
-from scipy.ndimage import gaussian_filter1d
 
 from ..errors import FeatureError
 from ..geometry.camera import Camera
 from ..geometry.holder import Holder
 from ..geometry.pose import Pose
-from .edges import MAD_TO_SIGMA, line_from, mad_scale, sample_profiles, tukey_weights
+from .edges import (
+    MAD_TO_SIGMA,
+    line_from,
+    mad_scale,
+    sample_profiles,
+    smooth_rows,
+    tukey_weights,
+)
 from .params import Segment, signed_area, where_px
 
 if TYPE_CHECKING:
@@ -244,21 +250,19 @@ def search_outline(img: np.ndarray, roi_origin, camera: Camera, holder: Holder,
         nxt = np.roll(C, -1, axis=0)
         step = 1.0 if W >= 10 else 0.5
         offsets = np.arange(-W, W + 1e-9, step)
-        bases, normals, which = [], [], []
-        for k in range(n):
-            a, b = C[k], nxt[k]
-            length = float(np.linalg.norm(b - a))
-            d = (b - a) / max(length, 1e-9)
-            ts = np.arange(params.corner_trim_px, length - params.corner_trim_px + 1e-9,
-                           params.search_step_px)
-            bases.append(a + ts[:, None] * d)
-            normals.append(np.broadcast_to(-sign * np.array([-d[1], d[0]]), (len(ts), 2)))
-            which.append(np.full(len(ts), k))
-        base, n_out, which = np.vstack(bases), np.vstack(normals), np.concatenate(which)
+        length = np.linalg.norm(nxt - C, axis=1)
+        d = (nxt - C) / np.maximum(length, 1e-9)[:, None]
+        if not np.all(np.isfinite(length)):
+            raise FeatureError("the pocket outline fit degenerated: holder not in view")
+        ts = [np.arange(params.corner_trim_px, float(length[k]) - params.corner_trim_px + 1e-9,
+                        params.search_step_px) for k in range(n)]
+        which = np.repeat(np.arange(n), [len(t) for t in ts])
+        base = C[which] + np.concatenate(ts)[:, None] * d[which]
+        n_out = (-sign * np.column_stack([-d[:, 1], d[:, 0]]))[which]
         if len(base) < 16 or not np.all(np.isfinite(base)):
             raise FeatureError("the pocket outline fit degenerated: holder not in view")
         prof = sample_profiles(img, roi_origin, camera, base, n_out, offsets)
-        prof = gaussian_filter1d(prof, max(W / 12.0, 0.8) / step, axis=1)
+        prof = smooth_rows(prof, max(W / 12.0, 0.8) / step)
         g = np.diff(prof, axis=1)
         j = np.argmax(g, axis=1)
         peak = g[np.arange(len(g)), j]
