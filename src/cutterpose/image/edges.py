@@ -94,14 +94,16 @@ def _half_max_centroids(g: np.ndarray, o0: float, step: float,
     j = np.argmax(g, axis=1)
     peak = g[np.arange(len(g)), j]
     half = 0.5 * peak
-    idx = np.arange(G)
+    # small integer types: these masks and index arrays are (profiles x samples)
+    idx = np.arange(G, dtype=np.int16)
+    jj = j.astype(np.int16)[:, None]
     below = g <= half[:, None]
-    left = np.where(below & (idx < j[:, None]), idx, -1).max(axis=1)
-    right = np.where(below & (idx > j[:, None]), idx, G).min(axis=1)
+    left = np.where(below & (idx < jj), idx, np.int16(-1)).max(axis=1)
+    right = np.where(below & (idx > jj), idx, np.int16(G)).min(axis=1)
     inside = (idx > left[:, None]) & (idx < right[:, None])
     w = np.where(inside, g - half[:, None], 0.0)
     with np.errstate(invalid="ignore", divide="ignore"):
-        cen = (w * idx).sum(axis=1) / w.sum(axis=1)
+        cen = (w @ np.arange(G, dtype=w.dtype)).astype(float) / w.sum(axis=1)
     ok = (left >= 0) & (right < G) & (peak > 0) & np.isfinite(cen)
     if groups is not None:  # the profiles of several lines at once: the median per line
         med = group_median(peak[ok], groups[ok], n_groups)
@@ -459,14 +461,15 @@ def tukey_lines(points: list, lines0: np.ndarray, scales0: np.ndarray, floor_px:
         c = -(nx * cx + ny * cy)
         r = x * nx[lab] + y * ny[lab] + c[lab]
         # MAD of the previous step's inliers, per line: one sort of keys offset per line
-        # (|r| << 1e6 px keeps each line's values in its own block)
+        # (the residuals of edge points are a few px, << 5e3: each line's values stay in
+        # their own block, and the offset costs < 1e-10 px of precision)
         inl = w > 0
         k = np.bincount(lab, inl, E).astype(int)
-        srt = np.sort(1e6 * lab + np.where(inl, np.minimum(np.abs(r), 5e5), 5e5))
+        srt = np.sort(1e4 * lab + np.where(inl, np.minimum(np.abs(r), 5e3), 5e3))
         last = max(len(srt) - 1, 0)
         lo = np.minimum(first + np.maximum(k - 1, 0) // 2, last)
         hi = np.minimum(first + k // 2, last)
-        med = 0.5 * ((srt[lo] - 1e6 * lines_e) + (srt[hi] - 1e6 * lines_e))
+        med = 0.5 * ((srt[lo] - 1e4 * lines_e) + (srt[hi] - 1e4 * lines_e))
         s_new = np.where(active, np.minimum(s, np.maximum(MAD_TO_SIGMA * med, floor_px)), s)
         w_all[sel] = weights(r, s_new[lab])
         moved = (np.abs(c - L[:, 2]) + np.hypot(nx - L[:, 0], ny - L[:, 1]) * 1e3)
