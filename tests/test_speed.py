@@ -168,3 +168,16 @@ def test_field_params_unchanged_by_the_speed_work():
     p = FeatureParams()
     assert (p.refine_step_px, p.refine_half_width_px, p.search_gates_px, p.search_step_px) == \
         (1.0, 6.0, (40.0, 14.0, 6.0), 10.0)
+
+
+def test_percentiles_from_the_histogram_equal_numpy():
+    from cutterpose.image.preprocessing import percentiles_from_histogram
+    from cutterpose.image.region import _percentile
+
+    rng = np.random.default_rng(0)
+    for n in (7, 1001, 50_000):
+        a = rng.integers(0, 256, n).astype(np.uint8)
+        got = percentiles_from_histogram(np.bincount(a, minlength=256), (1, 50, 90, 99))
+        assert np.allclose(got, np.percentile(a, [1, 50, 90, 99]), atol=1e-9, rtol=0)
+        f = rng.random(n).astype(np.float32)
+        assert _percentile(f, 90.0) == pytest.approx(float(np.percentile(f, 90)), abs=1e-7)

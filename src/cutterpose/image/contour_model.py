@@ -25,6 +25,7 @@ from .edges import (
     MAD_TO_SIGMA,
     line_from,
     mad_scale,
+    median_rows,
     sample_profiles,
     smooth_rows,
     tukey_weights,
@@ -211,11 +212,16 @@ def check_edge_support(lines, edges, spans, camera, params):
 
 # ------------------------------------------------------------------------------------------
 # field chain (issue 10): the outline found on the gradient, robustly
-def _line_distances_px(H: np.ndarray, plane_lines: np.ndarray, pts: np.ndarray) -> np.ndarray:
-    """Signed distance (ideal px) of image points to the images ``H^-T l`` of plane lines."""
+def _line_distances_px(H: np.ndarray, plane_lines: np.ndarray, pts: np.ndarray,
+                       which: np.ndarray | None = None) -> np.ndarray:
+    """Signed distance (ideal px) of image points to the images ``H^-T l`` of plane lines
+    (``pts[i]`` to line ``plane_lines[i]``, or to ``plane_lines[which[i]]``: each distinct
+    line mapped once)."""
     Li = plane_lines @ np.linalg.inv(H)  # rows: image lines l^T H^-1
     Li = Li / np.linalg.norm(Li[:, :2], axis=1, keepdims=True)
-    return (Li[:, :2] * pts).sum(axis=1) + Li[:, 2]
+    if which is not None:
+        Li = Li[which]
+    return Li[:, 0] * pts[:, 0] + Li[:, 1] * pts[:, 1] + Li[:, 2]
 
 
 def search_outline(img: np.ndarray, roi_origin, camera: Camera, holder: Holder,
@@ -268,7 +274,9 @@ def search_outline(img: np.ndarray, roi_origin, camera: Camera, holder: Holder,
         peak = g[np.arange(len(g)), j]
         # wide windows are mostly flat: the derivative's MAD is its noise; narrow ones hold
         # little but the edge, so there a step must reach a quarter of the median step
-        noise = (MAD_TO_SIGMA * float(np.median(np.abs(g - np.median(g)))) if W >= 10 else
+        g_all = g.reshape(1, -1)
+        noise = (MAD_TO_SIGMA * float(median_rows(np.abs(g_all - median_rows(g_all)[0]))[0])
+                 if W >= 10 else
                  0.25 / 3.0 * float(np.median(peak[peak > 0])) if np.any(peak > 0) else 0.0)
         # parabolic sub-sample peak
         jj = np.clip(j, 1, g.shape[1] - 2)
@@ -281,8 +289,9 @@ def search_outline(img: np.ndarray, roi_origin, camera: Camera, holder: Holder,
             raise FeatureError(f"no pocket edge found along the outline ({int(ok.sum())} edge "
                                "points): holder hidden or not in view")
         p = base[ok] + o[ok, None] * n_out[ok]
-        ln = plane_lines[which[ok]]
-        r = _line_distances_px(H, ln, p)
+        k_ok = which[ok]
+        ln = plane_lines[k_ok]
+        r = _line_distances_px(H, plane_lines, p, k_ok)
         s = mad_scale(r, 0.25)
         for _ in range(6):
             w = tukey_weights(r, s)
@@ -290,7 +299,7 @@ def search_outline(img: np.ndarray, roi_origin, camera: Camera, holder: Holder,
                 break
             q = np.column_stack([p, np.ones(len(p))]) @ np.linalg.inv(H).T
             H1 = _fit_h_lines(ln, p, np.sqrt(w) / np.abs(q[:, 2]))
-            r = _line_distances_px(H1, ln, p)
+            r = _line_distances_px(H1, plane_lines, p, k_ok)
             H = H1
             s = min(s, mad_scale(r[w > 0], 0.1))
         # share of all profiles (the whole outline) whose edge point fits

@@ -150,6 +150,16 @@ def _outline_template(camera: Camera, holder: Holder, downscale: int, gamma_deg:
     return out
 
 
+def _percentile(a: np.ndarray, q: float) -> float:
+    """``np.percentile(a, q)`` (linear interpolation) from one partition."""
+    v = np.ravel(a)
+    pos = q / 100.0 * (v.size - 1)
+    lo = int(np.floor(pos))
+    hi = min(lo + 1, v.size - 1)
+    part = np.partition(v, [lo, hi] if hi != lo else [lo])
+    return float(part[lo]) + (float(part[hi]) - float(part[lo])) * (pos - lo)
+
+
 def _orientation_field(img: np.ndarray) -> np.ndarray:
     """Doubled-angle gradient field ``w (cos 2 theta, sin 2 theta)`` (H, W, 2) float32, ``w``
     the gradient magnitude saturated at its 90th percentile."""
@@ -158,7 +168,7 @@ def _orientation_field(img: np.ndarray) -> np.ndarray:
     gy = cv2.Sobel(img, cv2.CV_32F, 0, 1, ksize=3)
     m2 = gx * gx + gy * gy
     m = np.sqrt(m2)
-    g0 = max(float(np.percentile(m[::2, ::2], 90)), 1e-3)
+    g0 = max(_percentile(m[::2, ::2], 90.0), 1e-3)
     w = np.minimum(m / g0, 1.0) / np.maximum(m2, 1e-12)
     return np.dstack([(gx * gx - gy * gy) * w, 2.0 * gx * gy * w]).astype(np.float32)
 
