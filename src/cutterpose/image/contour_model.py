@@ -58,16 +58,22 @@ def _moments(p: np.ndarray):
     return abs(m["m00"]), c, theta
 
 
-def _fit_h_lines(model_lines, pts, w):
-    """Homography H (plane -> image) with each image point ``pts[i]`` on the plane line
-    ``model_lines[i]``: ``l^T H^-1 p = 0`` is linear in ``G = H^-1``; weighted SVD on
-    normalised pixels."""
+def _h_line_system(model_lines, pts):
+    """The unweighted rows of :func:`_fit_h_lines` (one per point) and the normalisation
+    ``T``: fixed while only the weights change (IRLS)."""
     c = pts.mean(axis=0)
     s = np.sqrt(2) / max(np.sqrt(((pts - c) ** 2).sum(axis=1)).mean(), 1e-9)
     T = np.array([[s, 0, -s * c[0]], [0, s, -s * c[1]], [0, 0, 1.0]])
     ph = np.column_stack([(pts - c) * s, np.ones(len(pts))])
-    A = (model_lines[:, :, None] * ph[:, None, :]).reshape(len(pts), 9) * w[:, None]
-    _, v = np.linalg.eigh(A.T @ A)  # 9 x 9: much cheaper than the SVD of A
+    return (model_lines[:, :, None] * ph[:, None, :]).reshape(len(pts), 9), T
+
+
+def _fit_h_lines(model_lines, pts, w, system=None):
+    """Homography H (plane -> image) with each image point ``pts[i]`` on the plane line
+    ``model_lines[i]``: ``l^T H^-1 p = 0`` is linear in ``G = H^-1``; weighted SVD on
+    normalised pixels. ``system``: :func:`_h_line_system` of the same points, if known."""
+    A, T = system if system is not None else _h_line_system(model_lines, pts)
+    _, v = np.linalg.eigh((A * (w * w)[:, None]).T @ A)  # 9 x 9: cheaper than A's SVD
     G = v[:, 0].reshape(3, 3) @ T
     H = np.linalg.inv(G)
     return H / H[2, 2]
@@ -293,12 +299,13 @@ def search_outline(img: np.ndarray, roi_origin, camera: Camera, holder: Holder,
         ln = plane_lines[k_ok]
         r = _line_distances_px(H, plane_lines, p, k_ok)
         s = mad_scale(r, 0.25)
+        system = _h_line_system(ln, p)  # only the weights change below
         for _ in range(6):
             w = tukey_weights(r, s)
             if np.count_nonzero(w) < 16:
                 break
             q = np.column_stack([p, np.ones(len(p))]) @ np.linalg.inv(H).T
-            H1 = _fit_h_lines(ln, p, np.sqrt(w) / np.abs(q[:, 2]))
+            H1 = _fit_h_lines(ln, p, np.sqrt(w) / np.abs(q[:, 2]), system)
             r = _line_distances_px(H1, plane_lines, p, k_ok)
             H = H1
             s = min(s, mad_scale(r[w > 0], 0.1))
