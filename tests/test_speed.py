@@ -21,6 +21,7 @@ from cutterpose.image import FeatureParams
 from cutterpose.image.edges import (
     group_median,
     lmeds_line,
+    lmeds_lines,
     median_rows,
     sample_profiles,
     smooth_rows,
@@ -181,3 +182,24 @@ def test_percentiles_from_the_histogram_equal_numpy():
         assert np.allclose(got, np.percentile(a, [1, 50, 90, 99]), atol=1e-9, rtol=0)
         f = rng.random(n).astype(np.float32)
         assert _percentile(f, 90.0) == pytest.approx(float(np.percentile(f, 90)), abs=1e-7)
+
+
+def test_batched_lmeds_equals_one_set_at_a_time():
+    """Same random pairs per set, the prior first, the same gate: the same line and scale."""
+    rng = np.random.default_rng(6)
+    sets, priors, gates = [], [], []
+    for _k in range(9):
+        n = int(rng.integers(30, 1200))                  # short sets and ranked long ones
+        a = rng.uniform(0, np.pi)
+        d, nn = np.array([np.cos(a), np.sin(a)]), np.array([-np.sin(a), np.cos(a)])
+        t = rng.uniform(0, n, n)
+        p = t[:, None] * d + rng.normal(0, 0.15, (n, 1)) * nn
+        p[rng.random(n) < 0.3] += 4.0 * nn               # 30 % outliers
+        sets.append(p)
+        priors.append(np.array([nn[0], nn[1], -0.5]))
+        gates.append(np.array([0.0 * d, n * d]))
+    L, s = lmeds_lines(sets, priors=priors, seeds=range(9), gate_points=gates, gate_px=2.5)
+    for k, p in enumerate(sets):
+        L1, s1 = lmeds_line(p, prior=priors[k], seed=k, gate_points=gates[k], gate_px=2.5)
+        assert np.allclose(L[k], L1, atol=1e-12) and s[k] == pytest.approx(s1, rel=1e-12)
+        assert np.median(np.abs(p @ L[k][:2] + L[k][2])) < 0.3   # on the inliers' line

@@ -329,37 +329,74 @@ def lmeds_line(p: np.ndarray, hypotheses: int = 64, prior: np.ndarray | None = N
 
     More than ``2 subsample`` points: the hypotheses are ranked on about ``subsample``
     evenly spread points and the ``top`` best scored on all (speed, issue 13)."""
-    n = len(p)
-    rng = np.random.default_rng(seed)
-    i = rng.integers(0, n, hypotheses)
-    j = rng.integers(0, n, hypotheses)
+    L, s = lmeds_lines([p], hypotheses, None if prior is None else [prior], [seed],
+                       None if gate_points is None else [gate_points], gate_px, subsample, top)
+    return L[0], float(s[0])
+
+
+def lmeds_lines(points: list, hypotheses: int = 64, priors=None, seeds=None,
+                gate_points=None, gate_px: float = np.inf, subsample: int = 256,
+                top: int = 4):
+    """:func:`lmeds_line` for several point sets (issue 13): the same random pairs (one
+    generator per set, seeded by ``seeds[e]``), the hypotheses of all sets built and gated in
+    one go, then scored per set; each set gets what :func:`lmeds_line` gives it. ``priors``
+    (E, 3) and ``gate_points`` (E, m, 2): per set, or None. Returns lines (E, 3), scales."""
+    E = len(points)
+    counts = np.array([len(p) for p in points], int)
+    first = np.cumsum(counts) - counts
+    P = np.concatenate([np.asarray(p, float).reshape(-1, 2) for p in points])
+    seeds = range(E) if seeds is None else seeds
+    draws = []
+    for e, seed in enumerate(seeds):
+        rng = np.random.default_rng(seed)
+        draws.append((rng.integers(0, counts[e], hypotheses) + first[e],
+                      rng.integers(0, counts[e], hypotheses) + first[e]))
+    i = np.concatenate([a for a, _ in draws])
+    j = np.concatenate([b for _, b in draws])
+    lab = np.repeat(np.arange(E), hypotheses)
     keep = i != j
-    a, b = p[i[keep]], p[j[keep]]
+    a, b, lab = P[i[keep]], P[j[keep]], lab[keep]
     d = b - a
     nrm = np.column_stack([-d[:, 1], d[:, 0]])
     ln = np.linalg.norm(nrm, axis=1)
     ok = ln > 1e-9
     nrm = nrm[ok] / ln[ok, None]
     L = np.column_stack([nrm, -(nrm * a[ok]).sum(axis=1)])
-    if prior is not None:
-        L = np.vstack([np.asarray(prior, float)[None], L])
+    lab = lab[ok]
+    if priors is not None:  # each set's prior first among its hypotheses (ties keep it)
+        L = np.vstack([np.asarray(priors, float).reshape(E, 3), L])
+        lab = np.concatenate([np.arange(E), lab])
+        order = np.argsort(lab, kind="stable")
+        L, lab = L[order], lab[order]
     if gate_points is not None:
-        L = L[np.abs(gate_points @ L[:, :2].T + L[:, 2]).max(axis=0) <= gate_px]
-    if len(L) == 0:
-        c, _, nn = fit_line(p)
-        return line_from(c, nn), np.inf
+        G = np.asarray(gate_points, float)[lab]                     # (H, m, 2)
+        dist = np.abs(G[:, :, 0] * L[:, None, 0] + G[:, :, 1] * L[:, None, 1] + L[:, None, 2])
+        passed = dist.max(axis=1) <= gate_px
+        L, lab = L[passed], lab[passed]
+    bounds = np.searchsorted(lab, np.arange(E + 1))
+
     def med_r2(L, q):  # squared residuals, one row per hypothesis (a fast partition)
         return median_rows((L[:, 0:1] * q[:, 0] + L[:, 1:2] * q[:, 1] + L[:, 2:3]) ** 2)
 
-    if n > 2 * subsample and len(L) > top:
-        # speed (issue 13): rank the hypotheses on every m-th point, then the best few on all
-        # points (the edges have 100-1000: the ranking costs a few %, the result the same
-        # but where near-equal hypotheses swap places)
-        best = np.argsort(med_r2(L, p[:: -(-n // subsample)]), kind="stable")[:top]
-        L = L[np.sort(best)]
-    med = med_r2(L, p)
-    k = int(np.argmin(med))
-    return L[k], MAD_TO_SIGMA * (1 + 5 / max(n - 2, 1)) * float(np.sqrt(med[k]))
+    out_L, out_s = np.zeros((E, 3)), np.zeros(E)
+    for e in range(E):
+        p, n = P[first[e]: first[e] + counts[e]], counts[e]
+        Le = L[bounds[e]: bounds[e + 1]]
+        if len(Le) == 0:
+            c, _, nn = fit_line(p)
+            out_L[e], out_s[e] = line_from(c, nn), np.inf
+            continue
+        if n > 2 * subsample and len(Le) > top:
+            # speed (issue 13): rank the hypotheses on every m-th point, then the best few
+            # on all points (a long edge has ~1000: the ranking costs a quarter, the result
+            # the same but where near-equal hypotheses swap places)
+            best = np.argsort(med_r2(Le, p[:: -(-n // subsample)]), kind="stable")[:top]
+            Le = Le[np.sort(best)]
+        med = med_r2(Le, p)
+        k = int(np.argmin(med))
+        out_L[e] = Le[k]
+        out_s[e] = MAD_TO_SIGMA * (1 + 5 / max(n - 2, 1)) * float(np.sqrt(med[k]))
+    return out_L, out_s
 
 
 def tukey_line(p: np.ndarray, line0: np.ndarray, scale0: float, floor_px: float = 0.02,
@@ -547,11 +584,11 @@ def robust_edge_lines(img: np.ndarray, roi_origin, camera: Camera, pred_ideal: n
             continue
         ends = pred_ideal[k] + ts_k[k][[0, -1], None] * d[k]
         fit.append((k, pts, ends))
-    L0 = np.zeros((len(fit), 3))
-    s0 = np.zeros(len(fit))
-    for i, (k, pts, ends) in enumerate(fit):
-        L0[i], s0[i] = lmeds_line(pts, prior=line_from(pred_ideal[k], n_in[k]), seed=k,
-                                  gate_points=ends, gate_px=params.max_line_shift_px)
+    ks = [f[0] for f in fit]
+    L0, s0 = lmeds_lines([f[1] for f in fit], priors=[line_from(pred_ideal[k], n_in[k])
+                                                       for k in ks],
+                         seeds=ks, gate_points=[f[2] for f in fit],
+                         gate_px=params.max_line_shift_px)
     Ls, ss, ws = tukey_lines([f[1] for f in fit], L0, s0)
     inliers = {}
     for (k, pts, ends), L, s_k, w in zip(fit, Ls, ss, ws):
