@@ -217,7 +217,32 @@ def _report(label, rows):
     return med
 
 
-def bench_measure(repeats: int = 7, image_sets: tuple = (), per_set: int = 20) -> None:
+def _field_images(count: int, cam, holder, seed: int = 13):
+    """``count`` rendered images of the ``field`` preset (bright cutter, flush surround, slurry
+    lumps over edges and a corner) at random poses of the real rig's range, in memory."""
+    from cutterpose.render.analytic import random_pose, render_holder
+
+    rng = np.random.default_rng(seed)
+    return [render_holder(random_pose(rng), cam, holder, "field", seed=seed + k).image
+            for k in range(count)]
+
+
+def _time_set(label, cam, holder, imgs, paths, repeats, sqpnp):
+    from cutterpose.pipeline import measure
+
+    rows, accepted = [], 0
+    measure(imgs[0], cam, holder)
+    for im, p in zip(imgs, paths):
+        r, _, ok = _time_image(im, p, cam, holder, max(3, repeats // 2), sqpnp)
+        rows.append(r)
+        accepted += ok
+    med = _report(f"{len(imgs)} {label}", rows)
+    print(f"  p90 {np.percentile([r['wall'] for r in rows], 90):.1f} ms wall; "
+          f"{accepted} of {len(imgs)} accepted (median {med['cpu']:.1f} ms CPU)")
+
+
+def bench_measure(repeats: int = 7, image_sets: tuple = (), per_set: int = 20,
+                  field_images: int = 0) -> None:
     try:
         from cutterpose.pipeline import measure
         from cutterpose.render.analytic import render_holder
@@ -244,17 +269,13 @@ def bench_measure(repeats: int = 7, image_sets: tuple = (), per_set: int = 20) -
     _report(f"a {img.shape[1]} x {img.shape[0]} image", [row])
     print("  stages of the fastest run (ms): " + ", ".join(
         f"{k} {v:.1f}" for k, v in stages.items()))
+    if field_images:
+        imgs = _field_images(field_images, cam, holder)
+        _time_set("rendered field-preset images (seeds 13..)", cam, holder, imgs,
+                  [None] * len(imgs), repeats, sqpnp)
     for folder in image_sets:
         scam, imgs, paths = _images(folder, per_set)
-        rows, accepted = [], 0
-        measure(imgs[0], scam, holder)
-        for im, p in zip(imgs, paths):
-            r, _, ok = _time_image(im, p, scam, holder, max(3, repeats // 2), sqpnp)
-            rows.append(r)
-            accepted += ok
-        med = _report(f"{len(imgs)} images of {folder}", rows)
-        print(f"  p90 {np.percentile([r['wall'] for r in rows], 90):.1f} ms wall; "
-              f"{accepted} of {len(imgs)} accepted (median {med['cpu']:.1f} ms CPU)")
+        _time_set(f"images of {folder}", scam, holder, imgs, paths, repeats, sqpnp)
 
 
 def main() -> None:
@@ -265,11 +286,17 @@ def main() -> None:
     ap.add_argument("--images", action="append", default=[],
                     help="an image set (folder with truth.json) to time measure on; repeatable")
     ap.add_argument("--per-set", type=int, default=20, help="images per set")
+    ap.add_argument("--field-images", type=int, default=None,
+                    help="render this many field-preset images to time measure on (default "
+                         "20 without --images, else 0)")
     a = ap.parse_args()
+    if a.field_images is None:
+        a.field_images = 0 if a.images else 20
     if not a.skip_solvers:
         bench_solvers(a.trials)
     if not a.skip_measure:
-        bench_measure(image_sets=tuple(a.images), per_set=a.per_set)
+        bench_measure(image_sets=tuple(a.images), per_set=a.per_set,
+                      field_images=a.field_images)
     peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     print(f"\npeak resident memory of this run: {peak_mb:.0f} MB")
 
