@@ -300,7 +300,8 @@ def draw_params(preset: FieldPreset, holder: Holder, rng: np.random.Generator) -
                       "ry_mm": float(ry), "rz_mm": float(rz),
                       "yaw_deg": float(rng.uniform(0, 180)), "across_edge": across,
                       "corner": corner, "wet": wet, "albedo": float(rng.uniform(0.12, 0.35)),
-                      "roughness": float(rng.uniform(0.3, 0.45) if wet else rng.uniform(0.75, 0.95)),
+                      "roughness": float(rng.uniform(0.3, 0.45) if wet
+                                         else rng.uniform(0.75, 0.95)),
                       "shape_seed": int(rng.integers(2**31))})
     p["slurry"] = lumps
     # materials and plate
@@ -397,7 +398,7 @@ def _grid_lines(lo: float, hi: float, keys, band: float, extra=(), coarse: float
         for k in keys:
             parts += [k - off, k + off]
     for c0, c1 in extra:
-        parts.append(np.arange(c0, c1, 0.2))
+        parts.append(np.arange(c0, c1, step_far))
     x = np.unique(np.round(np.concatenate(parts), 6))
     return x[(x >= lo) & (x <= hi)]
 
@@ -472,9 +473,11 @@ def _merge(name: str, parts: list[MeshData]) -> MeshData:
     return MeshData(name, np.concatenate(Vs).astype(np.float32), np.concatenate(Fs), None, uv)
 
 
-def _top_and_walls(params: dict, holder: Holder) -> tuple[MeshData, MeshData, MeshData]:
-    """The holder's top face (a height field on a grid crowded at the contour), the pocket
-    walls (sharing the face's boundary vertices) and the pocket floor."""
+def _top_and_walls(params: dict, holder: Holder,
+                   step_mm: float = 0.2) -> tuple[MeshData, MeshData, MeshData]:
+    """The holder's top face (a height field on a grid crowded at the contour, ``step_mm``
+    apart at the most), the pocket walls (sharing the face's boundary vertices) and the
+    pocket floor."""
     c = holder.corners_mm
     a, b = holder.outer_length_x_mm / 2, holder.outer_width_y_mm / 2
     band = params["radius_hi_mm"]
@@ -487,8 +490,8 @@ def _top_and_walls(params: dict, holder: Holder) -> tuple[MeshData, MeshData, Me
         else:
             ey.append((ch["y_mm"] - ext, ch["y_mm"] + ext))
     band = band + 1.0 if band > 0 else 0.0
-    gx = _grid_lines(-a, a, np.unique(c[:, 0]), band, ex)
-    gy = _grid_lines(-b, b, np.unique(c[:, 1]), band, ey)
+    gx = _grid_lines(-a, a, np.unique(c[:, 0]), band, ex, step_far=step_mm)
+    gy = _grid_lines(-b, b, np.unique(c[:, 1]), band, ey, step_far=step_mm)
     XX, YY = np.meshgrid(gx, gy)  # (ny, nx)
     Z = surface_depth(params, holder, XX, YY)
     V = np.stack([XX, YY, Z], -1).reshape(-1, 3).astype(np.float32)
@@ -614,10 +617,12 @@ def _lump_mesh(lump: dict, name: str) -> MeshData:
     return MeshData(name, V, F, _vertex_normals(V, F))
 
 
-def build_geometry(params: dict, holder: Holder) -> dict[str, list[MeshData]]:
-    """Every mesh of the scene in the holder frame, grouped by material."""
+def build_geometry(params: dict, holder: Holder,
+                   step_mm: float = 0.2) -> dict[str, list[MeshData]]:
+    """Every mesh of the scene in the holder frame, grouped by material; ``step_mm``: the
+    coarsest spacing of the top face's grid near the contour (about a pixel's footprint)."""
     a, b = holder.outer_length_x_mm / 2, holder.outer_width_y_mm / 2
-    top, walls, floor = _top_and_walls(params, holder)
+    top, walls, floor = _top_and_walls(params, holder, step_mm)
     pl = params["plate"]
     g, dz, L, back = pl["gap_mm"], pl["dz_mm"], 1500.0, 60.0
     A, B = a + g, b + g
@@ -664,7 +669,7 @@ def _top_textures(params: dict, holder: Holder, texel_mm: float = 0.25) -> dict:
     cx, cy = rng.uniform(-1.5, 1.5) * a, rng.choice([-1, 1]) * rng.uniform(2.5, 4.0) * b
     r = np.sqrt((X - cx) ** 2 + (Y - cy) ** 2)
     pitch = rng.uniform(0.8, 1.6)
-    alb += 0.03 * np.sin(2 * np.pi * r / pitch + 1.5 * fractal_noise((h, w), rng, 200 * t, 2))
+    alb += 0.5 * gr * np.sin(2 * np.pi * r / pitch + 1.5 * fractal_noise((h, w), rng, 200 * t, 2))
     rough = params["steel_roughness"] * (1.0 + 0.04 * fractal_noise((h, w), rng, 40 * t, 3))
     metal = np.full((h, w), 0.35, np.float32)
     coat = np.zeros((h, w), np.float32)
@@ -762,11 +767,10 @@ RING_INNER_MM, RING_OUTER_MM = 30.0, 50.0
 
 
 def build_scene(mi, params: dict, holder: Holder, pose: Pose, sensors: list[dict],
-                max_depth: int = 5, geometry=None):
+                max_depth: int = 5, geometry=None, texel_mm: float = 0.25):
     """The Mitsuba scene of one image: geometry, materials, the ring light, the sensors."""
     geometry = build_geometry(params, holder) if geometry is None else geometry
-    tex = _top_textures(params, holder)
-    a, b = holder.outer_length_x_mm / 2, holder.outer_width_y_mm / 2
+    tex = _top_textures(params, holder, texel_mm)
     pl = params["plate"]
     prng = np.random.default_rng(params["texture_seed"] + 1)
     plate_alb = pl["albedo"] * np.exp(0.15 * fractal_noise((1500, 1500), prng, 60, 5)
@@ -834,8 +838,10 @@ def pinhole_film(camera: Camera, oversample: float = 1.0) -> PinholeFilm:
     w, h = camera.image_size_px
     u = np.arange(w, dtype=float)
     v = np.arange(h, dtype=float)
-    border = np.concatenate([np.column_stack([u, np.zeros(w)]), np.column_stack([u, np.full(w, h - 1.0)]),
-                             np.column_stack([np.zeros(h), v]), np.column_stack([np.full(h, w - 1.0), v])])
+    border = np.concatenate([np.column_stack([u, np.zeros(w)]),
+                             np.column_stack([u, np.full(w, h - 1.0)]),
+                             np.column_stack([np.zeros(h), v]),
+                             np.column_stack([np.full(h, w - 1.0), v])])
     m = camera.normalize_px(border)
     f = float(camera.K[1, 1]) * oversample
     W = 2 * int(math.ceil(f * np.abs(m[:, 0]).max() + 4))
@@ -1040,8 +1046,11 @@ def render_field(pose: Pose | None = None, camera: Camera | None = None,
     bg_spp = max(1, int(preset.background_spp))
     sensors = [_sensor_dict(mi, pose, film, bg_spp, scale=2),
                _sensor_dict(mi, pose, film, spp, crop=crop)]
-    geometry = build_geometry(params, holder)
-    scene, _ = build_scene(mi, params, holder, pose, sensors, preset.max_depth, geometry)
+    # grid of the top face: about 0.8 of a pixel's footprint (not below 0.2 mm)
+    step = float(np.clip(0.8 * pose.t_mm[2] / camera.focal_px, 0.2, 2.0))
+    geometry = build_geometry(params, holder, step)
+    scene, _ = build_scene(mi, params, holder, pose, sensors, preset.max_depth, geometry,
+                           texel_mm=float(np.clip(step, 0.25, 2.0)))
     t1 = time.perf_counter()
     s_bg, s_crop = (int(x) for x in r_mc.integers(0, 2**31, 2))
     bg = _luminance(mi.render(scene, sensor=0, seed=s_bg, spp=bg_spp))
@@ -1148,7 +1157,7 @@ def render_field_set(count: int, seed: int, out_dir, preset: FieldPreset | str =
 # ------------------------------------------------------------------------------------------
 # self-test: where is the intensity step relative to the projected design edge?
 def edge_step_offsets(value: np.ndarray, pose: Pose, camera: Camera, holder: Holder,
-                      half_px: float = 2.0, step_mm: float = 2.0, min_contrast: float = 20.0,
+                      half_px: float = 2.0, step_mm: float = 0.5, min_contrast: float = 20.0,
                       keep: float = 0.6) -> np.ndarray:
     """Signed sub-pixel offsets (px, positive = out of the pocket, onto the top face) of the
     intensity step from the projected design edge, per contour edge (median over the middle
