@@ -129,7 +129,7 @@ class FieldPreset:
     plate_gap_mm: tuple[float, float] = (0.3, 1.5)
     pocket_depth_mm: float = 80.0
     # light and sensor
-    light_dn: float = 320.0
+    light_dn: float = 280.0
     vignetting_power: float = 2.0
     defocus_sigma_px: tuple[float, float] = (0.6, 1.0)
     electrons_per_dn: float = 12.0
