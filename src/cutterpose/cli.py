@@ -120,7 +120,7 @@ def render_cmd(
     truth: bool = typer.Option(True, help="Also write <stem>.truth.json beside the image."),
     engine: str = typer.Option("analytic", help="analytic (closed-form ray casting) or pbr "
                                "(Mitsuba 3 path tracing of field conditions; extra [field])."),
-    spp: int = typer.Option(None, min=1, help="pbr: samples per pixel (preset: 16)."),
+    spp: int = typer.Option(None, min=1, help="pbr: samples per pixel (preset: 12)."),
     variant: str = typer.Option(None, help="pbr: Mitsuba variant (default: llvm_ad_mono if "
                                 "it works here, else scalar_rgb)."),
 ):
@@ -177,7 +177,7 @@ def render_set_cmd(
                                "new (default) or worn)."),
     workers: int = typer.Option(1, min=1, help="Worker processes (the set does not change)."),
     engine: str = typer.Option("analytic", help="analytic or pbr (Mitsuba 3; extra [field])."),
-    spp: int = typer.Option(None, min=1, help="pbr: samples per pixel (preset: 16)."),
+    spp: int = typer.Option(None, min=1, help="pbr: samples per pixel (preset: 12)."),
     variant: str = typer.Option(None, help="pbr: Mitsuba variant."),
 ):
     """Render an image set with its truth.json (PROTOCOL.md, exchange formats)."""

@@ -129,14 +129,14 @@ class FieldPreset:
     plate_gap_mm: tuple[float, float] = (0.3, 1.5)
     pocket_depth_mm: float = 80.0
     # light and sensor
-    light_dn: float = 280.0
+    light_dn: float = 250.0
     vignetting_power: float = 2.0
     defocus_sigma_px: tuple[float, float] = (0.6, 1.0)
     electrons_per_dn: float = 12.0
     read_noise_dn: float = 1.2
     # Monte Carlo
-    spp: int = 16
-    background_spp: int = 4
+    spp: int = 12
+    background_spp: int = 2
     max_depth: int = 5
 
     def with_(self, **changes) -> FieldPreset:
