@@ -16,7 +16,7 @@ import cv2
 import numpy as np
 
 from cutterpose.errors import CutterposeError
-from cutterpose.experiments.images import load_image_set
+from cutterpose.experiments.images import corner_rms, load_image_set
 from cutterpose.geometry.pose import Pose, pose_errors
 from cutterpose.pipeline import measure
 from cutterpose.render.analytic import render_holder
@@ -61,8 +61,7 @@ def main():
                 m, ok, reason = None, False, str(ex)
             row = {"ok": bool(ok and m.pose is not None), "reason": reason, "R": R, "t": t}
             if row["ok"]:
-                row.update(Re=m.pose.R, te=m.pose.t_mm,
-                           rms=float(np.sqrt(np.mean(np.sum((m.corners_px - truth) ** 2, 1)))))
+                row.update(Re=m.pose.R, te=m.pose.t_mm, rms=corner_rms(m.corners_px, truth))
             rows[name].append(row)
     for name in rows:
         print(summary(f"{name} ({a.method})", rows[name]))
