@@ -160,3 +160,8 @@ def test_render_set_is_an_image_set(mi, tmp_path):
     pbr.render_field_set(1, 5, tmp_path / "again", "new", cam, variant="scalar_rgb", spp=2)
     assert json.loads((tmp_path / "again" / "truth.json").read_text())["images"][0][
         "params"] == a
+    # an interrupted set goes on where it stopped
+    pbr.render_field_set(2, 5, tmp_path / "again", "new", cam, variant="scalar_rgb", spp=2,
+                         resume=True)
+    b = json.loads((tmp_path / "again" / "truth.json").read_text())["images"]
+    assert [e["params"] for e in b] == [e["params"] for e in entries]

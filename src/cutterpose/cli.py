@@ -179,6 +179,8 @@ def render_set_cmd(
     engine: str = typer.Option("analytic", help="analytic or pbr (Mitsuba 3; extra [field])."),
     spp: int = typer.Option(None, min=1, help="pbr: samples per pixel (preset: 12)."),
     variant: str = typer.Option(None, help="pbr: Mitsuba variant."),
+    resume: bool = typer.Option(False, "--resume", help="pbr: keep the images of an "
+                                "interrupted run of the same set and render the rest."),
 ):
     """Render an image set with its truth.json (PROTOCOL.md, exchange formats)."""
     from rich.progress import Progress
@@ -191,7 +193,8 @@ def render_set_cmd(
         with Progress(transient=True, console=None) as bar:
             task = bar.add_task(f"rendering ({fp.name}, pbr)", total=count)
             path = render_field_set(count, seed, out, fp, cam, variant=variant, spp=spp,
-                                    progress=lambda done, n: bar.update(task, completed=done))
+                                    progress=lambda done, n: bar.update(task, completed=done),
+                                    resume=resume)
         typer.echo(f"wrote {count} images and {path}")
         return
     if engine != "analytic":

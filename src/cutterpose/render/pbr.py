@@ -931,7 +931,6 @@ def hidden_corners(params: dict, holder: Holder, pose: Pose, geometry: dict,
         for m in meshes:
             V, F = m.V.astype(np.float64), m.F
             # only triangles in front of the face can hide a point of it
-            F = F[V[F].min(axis=(1, 2)) < 0] if why == "cutter" else F
             F = F[V[F][:, :, 2].min(axis=1) < 0]
             if len(F) == 0:
                 continue
@@ -1125,10 +1124,12 @@ def render_field_set(count: int, seed: int, out_dir, preset: FieldPreset | str =
                      camera: Camera | None = None, holder: Holder | None = None,
                      variant: str | None = None, spp: int | None = None,
                      max_angle_deg: float = 10.0, max_shift_mm: float = 20.0,
-                     progress=None) -> Path:
+                     progress=None, resume: bool = False) -> Path:
     """Render ``count`` pbr images at random poses (PROTOCOL.md, real-image experiment) into
     ``out_dir`` with its ``truth.json`` (rewritten after every image, so a set that is still
-    rendering can already be read). Image ``i`` uses the seed ``SeedSequence([seed, i])``."""
+    rendering can already be read). Image ``i`` uses the seed ``SeedSequence([seed, i])``.
+    ``resume``: keep the images of an interrupted run of the same set (same seed and preset,
+    file present) and render the rest."""
     if count < 1:
         raise InputError(f"count must be >= 1, got {count}")
     camera = default_camera("table1") if camera is None else camera
@@ -1139,7 +1140,15 @@ def render_field_set(count: int, seed: int, out_dir, preset: FieldPreset | str =
     doc = {"camera": camera.to_dict(), "holder": holder.to_dict(), "seed": seed,
            "engine": "pbr", "presets": {preset.name: asdict(preset)}, "images": []}
     path = out / "truth.json"
+    done = {}
+    if resume and path.is_file():
+        old = json.loads(path.read_text())
+        if old.get("seed") == seed and set(old.get("presets", {})) == {preset.name}:
+            done = {e["file"]: e for e in old["images"] if (out / e["file"]).is_file()}
     for i in range(count):
+        if f"img_{i:04d}.png" in done:
+            doc["images"].append(done[f"img_{i:04d}.png"])
+            continue
         img_seed = int(np.random.SeedSequence([seed, i]).generate_state(1)[0])
         pose = random_pose(np.random.default_rng(img_seed), max_angle_deg, max_shift_mm)
         r = render_field(pose, camera, holder, preset, seed=img_seed, variant=variant, spp=spp)
