@@ -177,7 +177,8 @@ def measure_cmd(
     image: str = typer.Argument(..., help="Image of the holder (PNG, JPEG, TIFF...)."),
     camera: str = typer.Option(None, help="table1 (default), synthetic, or a camera file."),
     holder: str = typer.Option(None, help="Holder JSON file (default: the bundled holder)."),
-    method: str = typer.Option("dm+", help="Pose method (cutterpose.methods)."),
+    method: str = typer.Option("dm+r", help="Pose method (cutterpose.methods; dm+r: the design "
+                               "edge's pose through a rounded edge; dm: the paper's chain)."),
     overlay: str = typer.Option(None, "--overlay", help="Write an overlay PNG here."),
     as_json: bool = typer.Option(False, "--json", help="One JSON object on stdout."),
 ):
