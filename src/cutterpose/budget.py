@@ -12,11 +12,16 @@ Contributions, each a covariance of the estimate (the pose's six DOFs, and the e
 * ``model``: the edge model's photometric spread: the offsets under each plausible light and
   material (:data:`cutterpose.image.edge_model.LOOK_VARIANTS`) minus the nominal ones, pushed
   through the estimator's linear sensitivity ``G = H^-1 J^T W^T W`` (``b_j = G D dDelta_j``), as
-  ``mean_j b_j b_j^T``; plus the rival rise of each edge end (half the gap to it where it is at
-  least 0.6 of the edge's, per edge);
-* ``edge_variation``: the radius is one per image but varies along a worn contour; a per-edge
-  deviation of std ``kappa r`` (``kappa = 0.3``: the issue's 1.5-5 mm spread about its mean)
-  moves edge ``k`` by ``slope_k kappa r``, independently per edge;
+  ``sum_j p_j b_j b_j^T``, with ``p_j`` the looks' posterior weights given the fit's residual
+  (equal prior weights, nominal included with ``b = 0``; under look ``j`` the whitened residual
+  would be ``-(I - P) m_j`` plus noise, ``m_j`` the look's whitened corner shift and ``P`` the
+  projection onto the fit's columns, so ``p_j ~ exp(-|z + (I - P) m_j|^2 / (2 chi2_red))``);
+  plus the rival rise of each edge end (half the gap to it where it is at least 0.6 of the
+  edge's, per edge);
+* ``edge_variation``: the radius is one per image but varies along a worn contour: independent
+  per-edge offsets of std ``max(sigma_e, kappa r |slope_k|)``, ``sigma_e`` measured from the
+  residuals (:func:`edge_variation_mm`) and a floor of ``kappa = 0.1`` (a tenth of the radius
+  per edge; the measured part covers larger variations as far as the corners show them);
 * for methods without the edge model (``dm``, ``dm+``, PnP): ``noise`` is the 6-DOF Gauss-Newton
   covariance of :func:`cutterpose.pipeline.pose_std` and ``wear`` the square of the pose shift the
   edges' measured darkening may cause (:func:`cutterpose.pipeline.edge_wear_effect`).
@@ -52,10 +57,11 @@ import numpy as np
 from .geometry.pose import rotation_from_euler_deg
 
 __all__ = ["ErrorBudget", "Tolerance", "budget_from_fit", "budget_from_dof_cov",
-           "dof_to_cam_jacobian", "COVARIANCE_CAM_ORDER", "KAPPA_EDGE_VARIATION"]
+           "dof_to_cam_jacobian", "edge_variation_mm", "COVARIANCE_CAM_ORDER",
+           "KAPPA_EDGE_VARIATION"]
 
 COVARIANCE_CAM_ORDER = ("x_mm", "y_mm", "z_mm", "rx_rad", "ry_rad", "rz_rad")
-KAPPA_EDGE_VARIATION = 0.3
+KAPPA_EDGE_VARIATION = 0.1
 
 
 @dataclass(frozen=True)
@@ -174,6 +180,34 @@ def budget_from_dof_cov(parts: dict, dof, grasp_point_mm=None, tol: Tolerance = 
     return ErrorBudget(parts, total, cam, p, pos, ang, radius_mm, radius_std_mm, per)
 
 
+def edge_variation_mm(fit, D_edge: np.ndarray) -> float:
+    """The std (mm) of independent per-edge offsets that the fit's residuals show.
+
+    With ``Q = I - J (J^T J)^-1 J^T`` (the fit's residual projector, 7 columns), the residual is
+    ``Q (D e + n)``: ``e`` per-edge offsets (std ``sigma_e``), ``n`` corner noise (std
+    ``sigma_c``). Split it on ``U = range(Q D)``: the part off ``U`` holds noise only,
+    ``sigma_c^2 = |r_perp|^2 / tr(Q - P_U)``; the part on ``U`` gives
+    ``sigma_e^2 = (|r_U|^2 - sigma_c^2 tr(P_U)) / tr(Q D D^T Q)`` (method of moments; the part
+    of ``D e`` the pose and radius absorb is extrapolated from the visible part).
+    """
+    J = fit.jacobian * np.repeat(np.sqrt(fit.weights), 2)[:, None]
+    r = fit.residuals_px.ravel() * np.repeat(np.sqrt(fit.weights), 2)
+    Dw = D_edge * np.repeat(np.sqrt(fit.weights), 2)[:, None]
+    Qj, _ = np.linalg.qr(J)
+    Q = np.eye(len(r)) - Qj @ Qj.T
+    QD = Q @ Dw
+    U, sv, _ = np.linalg.svd(QD, full_matrices=False)
+    U = U[:, sv > 1e-9 * sv.max()]
+    rU = U.T @ r
+    r_perp2 = float(r @ Q @ r - rU @ rU)
+    dof_perp = float(np.trace(Q)) - U.shape[1]
+    if dof_perp < 1:
+        return 0.0
+    s_c2 = r_perp2 / dof_perp
+    num = float(rU @ rU) - s_c2 * U.shape[1]
+    return float(np.sqrt(max(num, 0.0) / float(np.sum(QD * QD))))
+
+
 def budget_from_fit(fit, camera, holder, grasp_point_mm=None, tol: Tolerance = Tolerance(),
                     kappa: float = KAPPA_EDGE_VARIATION) -> ErrorBudget:
     """The budget of a ``dm+r`` fit (:class:`cutterpose.solvers.edge_radius.RadiusFit`)."""
@@ -208,16 +242,30 @@ def budget_from_fit(fit, camera, holder, grasp_point_mm=None, tol: Tolerance = T
         return out.ravel()
 
     B = np.array([G @ end_px(d) for d in deltas]) if len(deltas) else np.zeros((0, 7))
-    C_model = B.T @ B / max(len(B), 1)
+    # the data weigh the looks: under look j the fit's residual would be -(I - P) m_j plus
+    # noise (m_j the look's whitened corner shift, P the projection onto the fit's columns)
+    P = Jw @ Hinv @ Jw.T
+    zf = z
+    chi = [float(zf @ zf)]
+    for d in deltas:
+        m = (Wbig @ end_px(d))
+        e = zf + m - P @ m
+        chi.append(float(e @ e))
+    chi = np.array(chi) / max(chi2, 1.0)
+    post = np.exp(-0.5 * (chi - chi.min()))
+    post /= post.sum()
+    C_model = (B * post[1:, None]).T @ B if len(B) else np.zeros((7, 7))
     # rival rises: per edge, the mean of its two ends' extra uncertainty (the whole line jumps)
     rival_end = np.sqrt(np.clip(sig_end ** 2 - np.mean(deltas ** 2, axis=0), 0, None)) \
         if len(deltas) else sig_end
     rival_edge = 0.5 * (rival_end[:, 1] + rival_end[(np.arange(n) + 1) % n, 0])
     GD = G @ D_edge
     C_rival = GD @ np.diag(rival_edge ** 2) @ GD.T
+    sig_e = edge_variation_mm(fit, D_edge)
     slope = fit.table(fit.radius_mm)[1]
     slope_edge = 0.5 * (slope[:, 1] + slope[(np.arange(n) + 1) % n, 0])
-    var_edge = (kappa * fit.radius_mm * slope_edge) ** 2
+    floor = kappa * fit.radius_mm * np.abs(slope_edge)
+    var_edge = np.maximum(floor, sig_e) ** 2
     C_var = GD @ np.diag(var_edge) @ GD.T
     H66 = fit.info[:6, :6]
     C_known = chi2 * np.linalg.inv(H66)

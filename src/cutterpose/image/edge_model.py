@@ -66,6 +66,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy import fft as sp_fft
+from scipy.interpolate import PchipInterpolator
 
 from ..errors import InputError
 from ..geometry.holder import Holder
@@ -110,11 +111,12 @@ class EdgeLook:
 
 
 #: the plausible range of light and material the edge model is not told about (its spread is
-#: the model's remaining uncertainty in the verdict's error budget): duller and glossier steel,
-#: a ring light of 40 mm round the lens, brighter walls, more blur
+#: the model's remaining uncertainty in the verdict's error budget): duller and glossier steel
+#: (machined steel always keeps some lobe), a ring light of 40 mm round the lens, brighter
+#: walls, less and more blur
 LOOK_VARIANTS: tuple[EdgeLook, ...] = (
     EdgeLook(),
-    EdgeLook(specular=0.0),
+    EdgeLook(specular=0.1),
     EdgeLook(specular=0.6, shininess=60.0),
     EdgeLook(specular=0.4, shininess=10.0),
     EdgeLook(face_albedo=0.5),
@@ -296,7 +298,7 @@ def profiles(radius_mm, view: EdgeView, look: EdgeLook = EdgeLook(), half_width_
     else:
         if np.any(a_z >= a_s):
             raise InputError("edge_model: the chamfer is seen edge-on")
-        w_end = np.where(a_z < 0, a_z, a_s)        # camera beyond: the chamfer hides the wall
+        w_end = a_z                                # the chamfer's foot (the wall may be hidden)
     # the profile in units of r, F(x), x = w / r, is the same for every radius: tabulate it
     # on a uniform grid over the broken edge's image [w_end, a_s] and look it up
     k = np.linspace(0.0, 1.0, _N_X)
@@ -422,18 +424,16 @@ class OffsetTable:
         if bad.any():
             med = np.nanmedian(self.delta.reshape(-1, len(self.radii)), axis=0)
             self.delta = np.where(bad, med[None, None, :], self.delta)
-        self.slope = np.gradient(self.delta, self.radii, axis=-1)
+        # C1 cubic (PCHIP): the solver's Jacobian and the Fisher information need a continuous
+        # slope; piecewise-linear would jump at every node
+        self._interp = PchipInterpolator(self.radii, self.delta, axis=-1, extrapolate=False)
+        self._slope = self._interp.derivative()
 
-    def __call__(self, radius_mm) -> tuple[np.ndarray, np.ndarray]:
-        """``delta`` (N, 2) and ``d delta / d r`` (N, 2) at one radius (or (N, 2) radii), by
-        linear interpolation of the table (clamped to its range)."""
-        r = np.broadcast_to(np.asarray(radius_mm, float), self.delta.shape[:2])
-        x = np.clip(r, self.radii[0], self.radii[-1])
-        j = np.clip(np.searchsorted(self.radii, x) - 1, 0, len(self.radii) - 2)
-        f = (x - self.radii[j]) / (self.radii[j + 1] - self.radii[j])
-        d0 = np.take_along_axis(self.delta, j[..., None], -1)[..., 0]
-        d1 = np.take_along_axis(self.delta, j[..., None] + 1, -1)[..., 0]
-        return d0 + f * (d1 - d0), (d1 - d0) / (self.radii[j + 1] - self.radii[j])
+    def __call__(self, radius_mm: float) -> tuple[np.ndarray, np.ndarray]:
+        """``delta`` (N, 2) and ``d delta / d r`` (N, 2) at one radius (clamped to the table's
+        range, where the slope is taken at the end)."""
+        x = float(np.clip(radius_mm, self.radii[0], self.radii[-1]))
+        return self._interp(x), self._slope(x)
 
 
 def model_corners_mm(holder: Holder, delta_mm: np.ndarray, outward: np.ndarray) -> np.ndarray:

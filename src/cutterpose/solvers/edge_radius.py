@@ -224,14 +224,16 @@ def _huber(z: np.ndarray, k: float) -> np.ndarray:
 def fit_pose_radius(dof0, ideal_px: np.ndarray, camera: Camera, holder: Holder,
                     look: EdgeLook = EdgeLook(), prior: RadiusPrior = RadiusPrior(),
                     max_iter: int = 30, huber_k: float = 2.5,
-                    r_grid=(0.0, 0.5, 1.0, 1.5, 2.0, 3.0, 4.0, 5.0, 6.0)) -> RadiusFit:
+                    r_grid=(0.0, 0.5, 1.0, 1.5, 2.0, 3.0, 4.0, 5.0, 6.0),
+                    table: OffsetTable | None = None) -> RadiusFit:
     """Levenberg-Marquardt on (DOFs, r) from ``dof0`` with the corners ``ideal_px`` given in
     model order (module doc).
 
     The offsets' table is made once at ``dof0`` (the offsets follow the viewing direction, not
     the millimetres the fit moves); a scan over ``r_grid`` picks the start; the first pass
     whitens the corners by the noise ``s`` alone (the robust scale of the start's residuals),
-    the second by the noise plus the edge model's rival rises at the radius found. The
+    the second by the noise plus the edge model's rival rises at the radius found (``table``:
+    a table made before for a view close to ``dof0``, e.g. for repeated fits). The
     minimiser is SciPy's trust-region reflective ``least_squares`` with Huber's loss on each
     whitened coordinate and the bounds of the prior on ``r``.
     """
@@ -239,7 +241,8 @@ def fit_pose_radius(dof0, ideal_px: np.ndarray, camera: Camera, holder: Holder,
     q = np.asarray(ideal_px, float)
     n = len(q)
     R0 = rotation_from_euler_deg(*np.asarray(dof0, float)[:3])
-    table = OffsetTable(R0, np.asarray(dof0, float)[3:], K, holder, look)
+    if table is None:
+        table = OffsetTable(R0, np.asarray(dof0, float)[3:], K, holder, look)
     r, dof = _scan_radius(np.asarray(dof0, float), q, table, holder, K, prior, r_grid)
     uv, J, _ = _model(dof, r, table, holder, K)
     # noise scale: robust, from the start's residuals (|e| of a 2-D Gaussian: median 1.18 s)
@@ -340,16 +343,20 @@ def fisher_pose_radius(pose: Pose, camera: Camera, holder: Holder, radius_mm: fl
 
 
 def crlb_pose_radius(pose: Pose, camera: Camera, holder: Holder, radius_mm: float,
-                     sigma_px: float, look: EdgeLook = EdgeLook()) -> dict:
+                     sigma_px: float, look: EdgeLook = EdgeLook(),
+                     prior: RadiusPrior | None = None) -> dict:
     """The bound on the std of the DOFs with the radius free and known, and the radius's
     bound and correlation with each DOF.
 
     Returns
     -------
     dict: ``std_free`` (7,) (DOFs then r), ``std_known`` (6,), ``corr_r`` (6,) correlation of
-    r with each DOF, ``std_per_family`` (8,) with one radius per edge direction.
+    r with each DOF, ``std_per_family`` (8,) with one radius per edge direction (without
+    prior), ``fisher`` (7, 7).
     """
     F = fisher_pose_radius(pose, camera, holder, radius_mm, sigma_px, look)
+    if prior is not None:  # the prior's information on r (a Bayesian bound)
+        F[6, 6] += 1.0 / prior.std_mm ** 2
     C = np.linalg.inv(F)
     std_free = np.sqrt(np.diag(C))
     std_known = np.sqrt(np.diag(np.linalg.inv(F[:6, :6])))
