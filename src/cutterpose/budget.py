@@ -4,6 +4,9 @@ whether that is within the robot's tolerance.
 Contributions, each a covariance of the estimate (the pose's six DOFs, and the edge radius
 ``r`` for ``dm+r``), summed:
 
+* ``radius``: the linearised marginal-minus-conditional above, or, when larger, the spread of
+  the pose over the radius scan's profile (another radius that fits nearly as well gives
+  another depth: :func:`radius_profile_cov`);
 * ``noise``: Gauss-Newton, ``chi2_red H^-1`` with ``H = J^T W^T W J`` (+ the radius prior), the
   corners whitened by their noise and the edge model's uncertainty at each corner
   (:func:`cutterpose.solvers.edge_radius.fit_pose_radius`); its pose block is the marginal over
@@ -57,7 +60,7 @@ import numpy as np
 from .geometry.pose import rotation_from_euler_deg
 
 __all__ = ["ErrorBudget", "Tolerance", "budget_from_fit", "budget_from_dof_cov",
-           "dof_to_cam_jacobian", "edge_variation_mm", "COVARIANCE_CAM_ORDER",
+           "dof_to_cam_jacobian", "edge_variation_mm", "radius_profile_cov", "COVARIANCE_CAM_ORDER",
            "KAPPA_EDGE_VARIATION"]
 
 COVARIANCE_CAM_ORDER = ("x_mm", "y_mm", "z_mm", "rx_rad", "ry_rad", "rz_rad")
@@ -208,6 +211,21 @@ def edge_variation_mm(fit, D_edge: np.ndarray) -> float:
     return float(np.sqrt(max(num, 0.0) / float(np.sum(QD * QD))))
 
 
+def radius_profile_cov(fit) -> np.ndarray:
+    """(6, 6) spread of the pose over the radius scan's profile (:class:`RadiusFit`
+    ``profile``), weighted by ``exp(-(cost - cost_min) / (2 s_eff^2))`` with
+    ``s_eff^2 = cost_min / (2N - 7)``, about the fitted pose: the non-linear counterpart of the
+    radius term, for when another radius fits nearly as well with another depth."""
+    if not fit.profile:
+        return np.zeros((6, 6))
+    cost = np.array([c for _, c, _ in fit.profile])
+    d = np.array([x for _, _, x in fit.profile]) - fit.dof
+    s_eff2 = max(cost.min() / max(2 * len(fit.residuals_px) - 7, 1), 1e-12)
+    w = np.exp(-0.5 * (cost - cost.min()) / s_eff2)
+    w /= w.sum()
+    return (d * w[:, None]).T @ d
+
+
 def budget_from_fit(fit, camera, holder, grasp_point_mm=None, tol: Tolerance = Tolerance(),
                     kappa: float = KAPPA_EDGE_VARIATION) -> ErrorBudget:
     """The budget of a ``dm+r`` fit (:class:`cutterpose.solvers.edge_radius.RadiusFit`)."""
@@ -269,8 +287,11 @@ def budget_from_fit(fit, camera, holder, grasp_point_mm=None, tol: Tolerance = T
     C_var = GD @ np.diag(var_edge) @ GD.T
     H66 = fit.info[:6, :6]
     C_known = chi2 * np.linalg.inv(H66)
-    parts = {"noise": C_noise[:6, :6] - (C_noise[:6, :6] - C_known),
-             "radius": C_noise[:6, :6] - C_known,
+    C_radius = C_noise[:6, :6] - C_known
+    C_valleys = radius_profile_cov(fit)
+    if np.trace(C_valleys) > np.trace(C_radius):
+        C_radius = C_valleys
+    parts = {"noise": C_known, "radius": C_radius,
              "model": (C_model + C_rival)[:6, :6], "edge_variation": C_var[:6, :6]}
     r_var = C_noise[6, 6] + C_model[6, 6] + C_rival[6, 6] + C_var[6, 6]
     return budget_from_dof_cov(parts, fit.dof, grasp_point_mm, tol, fit.radius_mm,

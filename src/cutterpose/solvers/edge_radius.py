@@ -39,7 +39,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.optimize import least_squares, linear_sum_assignment
@@ -94,7 +94,8 @@ class RadiusFit:
     info : (7, 7) the normal matrix ``J^T W^T W J`` + the prior (1 / unit^2).
     sigma_px : the noise scale ``s`` (robust, from the start's residuals).
     table : the offsets' table at the solution's view.
-    rms_px : RMS corner residual; iterations : LM steps taken.
+    rms_px : RMS corner residual; iterations : function evaluations of the minimiser.
+    profile : ``(r, cost, dof)`` of the radius scan (:func:`_scan_radius`).
     """
 
     dof: np.ndarray
@@ -108,6 +109,7 @@ class RadiusFit:
     table: OffsetTable
     rms_px: float
     iterations: int
+    profile: list = field(default_factory=list)
 
 
 def _rotation_and_derivatives(dof):
@@ -193,10 +195,12 @@ def _whitening(sigma_px: float, sig_end_mm: np.ndarray, table: OffsetTable, Jt6:
 
 
 def _scan_radius(dof, q, table, holder, K, prior: RadiusPrior, r_grid):
-    """The radius of the grid whose pose fit (three Gauss-Newton steps from ``dof``) leaves
-    the smallest robust cost plus prior, and that pose: the offsets are not monotone in r, so a
-    local fit from one start can stop in the wrong valley."""
-    best = (np.inf, float(np.clip(prior.mean_mm, prior.min_mm, prior.max_mm)), dof)
+    """Profile of the fit over the radius: for each ``r`` of the grid, the pose after three
+    Gauss-Newton steps from ``dof`` and its robust cost (plus the prior). Returns the best
+    radius, its pose and the profile ``(r, cost, dof)`` rows (the offsets are not monotone in
+    r, so a local fit from one start can stop in the wrong valley, and the budget needs to know
+    whether another valley fits nearly as well)."""
+    rows = []
     s2 = None
     for r in r_grid:
         if not prior.min_mm <= r <= prior.max_mm:
@@ -210,9 +214,9 @@ def _scan_radius(dof, q, table, holder, K, prior: RadiusPrior, r_grid):
             s2 = max(0.05, float(np.median(e))) ** 2
         cost = float(np.sum(np.minimum(e ** 2, 4 * s2))) + s2 * (
             (r - prior.mean_mm) / prior.std_mm) ** 2
-        if cost < best[0]:
-            best = (cost, float(r), d)
-    return best[1], best[2]
+        rows.append((float(r), cost, d))
+    best = min(rows, key=lambda row: row[1])
+    return best[0], best[2], rows
 
 
 def _huber(z: np.ndarray, k: float) -> np.ndarray:
@@ -243,7 +247,8 @@ def fit_pose_radius(dof0, ideal_px: np.ndarray, camera: Camera, holder: Holder,
     R0 = rotation_from_euler_deg(*np.asarray(dof0, float)[:3])
     if table is None:
         table = OffsetTable(R0, np.asarray(dof0, float)[3:], K, holder, look)
-    r, dof = _scan_radius(np.asarray(dof0, float), q, table, holder, K, prior, r_grid)
+    r, dof, profile = _scan_radius(np.asarray(dof0, float), q, table, holder, K, prior,
+                                   r_grid)
     uv, J, _ = _model(dof, r, table, holder, K)
     # noise scale: robust, from the start's residuals (|e| of a 2-D Gaussian: median 1.18 s)
     s = max(0.02, float(np.median(np.linalg.norm(uv - q, axis=1))) / 1.18)
@@ -283,7 +288,7 @@ def fit_pose_radius(dof0, ideal_px: np.ndarray, camera: Camera, holder: Holder,
     H = Jw.T @ Jw
     H[6, 6] += inv_sr ** 2
     rms = float(np.sqrt(np.mean(np.sum(res ** 2, axis=1))))
-    return RadiusFit(dof, r, res, J, wt, W, H, s, table, rms, it)
+    return RadiusFit(dof, r, res, J, wt, W, H, s, table, rms, it, profile)
 
 
 def _assigned(est: PoseEstimate, ideal_px: np.ndarray, camera: Camera, holder: Holder):
