@@ -21,7 +21,7 @@ from cutterpose.image.edge_model import (
     model_corners_mm,
 )
 from cutterpose.methods import get_method
-from cutterpose.pipeline import QualityLimits, measure_features
+from cutterpose.pipeline import QualityLimits, measure, measure_features
 from cutterpose.render.analytic import PRESETS, render_holder
 from cutterpose.solvers.edge_radius import RadiusPrior, crlb_pose_radius, fit_pose_radius
 from test_features import SCALE, small_camera
@@ -201,3 +201,5 @@ def test_bad_edge_look_and_radius_are_refused():
         edge_offsets_mm(np.array([-1.0]), v)
     with pytest.raises(InputError):
         RadiusPrior(std_mm=0.0)
+    with pytest.raises(InputError):
+        measure(np.zeros((8, 8), np.uint8), cam, HOLDER, grasp_point_mm=(1.0, 2.0))

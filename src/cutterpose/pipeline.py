@@ -40,13 +40,13 @@ from __future__ import annotations
 import json
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 
 from .budget import ErrorBudget, Tolerance, budget_from_dof_cov, budget_from_fit
-from .errors import CutterposeError, FeatureError, ImageError
+from .errors import CutterposeError, FeatureError, ImageError, InputError
 from .geometry.camera import Camera, default_camera
 from .geometry.holder import Holder, default_holder
 from .geometry.pose import Pose, pixel_jacobian, rotation_from_euler_deg
@@ -437,7 +437,7 @@ def measure_features(features: Features, camera: Camera, holder: Holder, method:
 
 def measure(image, camera: Camera | None = None, holder: Holder | None = None,
             method: str = "dm+r", params: FeatureParams | None = None,
-            limits: QualityLimits | None = None) -> Measurement:
+            limits: QualityLimits | None = None, grasp_point_mm=None) -> Measurement:
     """Measure the holder's pose in one image.
 
     Parameters
@@ -448,6 +448,8 @@ def measure(image, camera: Camera | None = None, holder: Holder | None = None,
         paper's chain is ``dm``).
     params : image processing parameters (the paper's by default).
     limits : when to refuse a pose.
+    grasp_point_mm : (3,) holder-frame point whose position the error budget checks (default
+        ``limits.grasp_point_mm``, the origin: the centre of the pocket's top plane).
 
     Returns
     -------
@@ -461,11 +463,16 @@ def measure(image, camera: Camera | None = None, holder: Holder | None = None,
         The file is missing or not an image; the image has the wrong size, or is black,
         saturated or uniform.
     InputError
-        Unknown method.
+        Unknown method; a grasp point that is not 3 finite numbers.
     """
     camera = camera or default_camera("table1")
     holder = holder or default_holder()
     get_method(method)  # unknown names fail before any work
+    if grasp_point_mm is not None:
+        p = np.asarray(grasp_point_mm, float).reshape(-1)
+        if p.shape != (3,) or not np.all(np.isfinite(p)):
+            raise InputError(f"grasp_point_mm must be 3 finite numbers, got {grasp_point_mm!r}")
+        limits = replace(limits or QualityLimits(), grasp_point_mm=tuple(p.tolist()))
     t0 = time.perf_counter()
     load_ms = 0.0
     if isinstance(image, (str, Path)):
