@@ -13,7 +13,8 @@ Contributions, each a covariance of the estimate (the pose's six DOFs, and the e
   ``r``, so the radius estimate's variance is in it (``radius`` reports how much: marginal minus
   the conditional ``r``-known covariance);
 * ``model``: the edge model's photometric spread: the offsets under each plausible light and
-  material (:data:`cutterpose.image.edge_model.LOOK_VARIANTS`) minus the nominal ones, pushed
+  material (:data:`cutterpose.image.edge_model.LOOK_VARIANTS`, and the other edge shape, fillet
+  or chamfer) minus the nominal ones, pushed
   through the estimator's linear sensitivity ``G = H^-1 J^T W^T W`` (``b_j = G D dDelta_j``), as
   ``sum_j p_j b_j b_j^T``, with ``p_j`` the looks' posterior weights given the fit's residual
   (equal prior weights, nominal included with ``b = 0``; under look ``j`` the whitened residual
@@ -53,7 +54,7 @@ References:
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -229,6 +230,7 @@ def radius_profile_cov(fit) -> np.ndarray:
 def budget_from_fit(fit, camera, holder, grasp_point_mm=None, tol: Tolerance = Tolerance(),
                     kappa: float = KAPPA_EDGE_VARIATION) -> ErrorBudget:
     """The budget of a ``dm+r`` fit (:class:`cutterpose.solvers.edge_radius.RadiusFit`)."""
+    from .image.edge_model import LOOK_VARIANTS
     from .solvers.edge_radius import model_offset_spread, per_edge_jacobian
 
     n = len(fit.residuals_px)
@@ -249,7 +251,12 @@ def budget_from_fit(fit, camera, holder, grasp_point_mm=None, tol: Tolerance = T
     G = Hinv @ Jw.T @ Wbig                                                  # (7, 2N)
     D_edge = per_edge_jacobian(fit, camera, holder)                         # (2N, N)
     # per edge end: corner i's ends are edges i-1 and i
-    deltas, sig_end = model_offset_spread(fit.table, fit.radius_mm, camera, holder, fit.dof)
+    # the plausible looks for the fitted shape, and the other shape at the nominal look
+    shape = fit.table.look.shape
+    looks = tuple(replace(v, shape=shape) for v in LOOK_VARIANTS) + (
+        replace(fit.table.look, shape="chamfer" if shape == "round" else "round"),)
+    deltas, sig_end = model_offset_spread(fit.table, fit.radius_mm, camera, holder, fit.dof,
+                                          looks)
     idx_prev = (np.arange(n) - 1) % n
 
     def end_px(d_end):  # (N, 2) offsets per edge end -> (2N,) pixel shifts

@@ -39,7 +39,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy.optimize import least_squares, linear_sum_assignment
@@ -305,9 +305,10 @@ def _assigned(est: PoseEstimate, ideal_px: np.ndarray, camera: Camera, holder: H
 
 def refine_radius(est: PoseEstimate, ideal_px: np.ndarray, camera: Camera, holder: Holder,
                   look: EdgeLook = EdgeLook(), prior: RadiusPrior = RadiusPrior(),
-                  name: str = "dm+r") -> PoseEstimate:
+                  name: str = "dm+r", shapes=("round", "chamfer")) -> PoseEstimate:
     """The refinement step after a solver: ``est`` -> the design-edge pose and the radius
-    (``info["edge_radius_mm"]``, ``info["radius_fit"]`` the :class:`RadiusFit`)."""
+    (``info["edge_radius_mm"]``, ``info["radius_fit"]`` the :class:`RadiusFit`), fitted for
+    each edge ``shapes`` and the better kept (``info["edge_shape"]``)."""
     if not est:
         return PoseEstimate.failure(name, est.reason, info=est.info)
     t0 = time.perf_counter()
@@ -316,10 +317,20 @@ def refine_radius(est: PoseEstimate, ideal_px: np.ndarray, camera: Camera, holde
                                     f"{holder.n_corners}", info=est.info)
     q = _assigned(est, np.asarray(ideal_px, float), camera, holder)
     dof0 = Pose(est.R_cam_holder, est.t_cam_holder_mm).dof
-    fit = fit_pose_radius(dof0, q, camera, holder, look, prior)
-    if not np.all(np.isfinite(fit.dof)):
+    fits = [fit_pose_radius(dof0, q, camera, holder, replace(look, shape=sh), prior)
+            for sh in shapes]
+    fits = [f for f in fits if np.all(np.isfinite(f.dof))]
+    if not fits:
         return PoseEstimate.failure(name, "the radius fit diverged", info=est.info)
+    # the edge's shape (a new holder's break is a fillet or a chamfer): the one whose corners
+    # fit better, by the same trimmed cost (one noise scale for both)
+    s = min(f.sigma_px for f in fits)
+    cost = [float(np.sum(np.minimum(np.sum(f.residuals_px ** 2, axis=1), (2.5 * s) ** 2)))
+            for f in fits]
+    fit = fits[int(np.argmin(cost))]
     info = dict(est.info, edge_radius_mm=fit.radius_mm, radius_fit=fit,
+                edge_shape=fit.table.look.shape, shape_costs=dict(
+                    zip([f.table.look.shape for f in fits], cost)),
                 radius_iterations=fit.iterations, start_dof=dof0.tolist())
     pose = Pose.from_euler(*fit.dof)
     return PoseEstimate(method=name, R_cam_holder=pose.R, t_cam_holder_mm=pose.t_mm,
