@@ -64,6 +64,10 @@ __all__ = ["RadiusPrior", "RadiusFit", "fit_pose_radius", "refine_radius", "solv
            "fisher_pose_radius", "crlb_pose_radius", "model_offset_spread"]
 
 
+#: the radii (mm) the fit starts from (the best one) and the budget's radius profile
+SCAN_RADII_MM = (0.0, 0.5, 1.0, 1.5, 2.0, 3.0, 4.0, 5.0, 6.0)
+
+
 @dataclass(frozen=True)
 class RadiusPrior:
     """The weak prior on the edge radius (mm): a new holder's break is 0.5-1.5 mm, a worn one
@@ -228,7 +232,7 @@ def _huber(z: np.ndarray, k: float) -> np.ndarray:
 def fit_pose_radius(dof0, ideal_px: np.ndarray, camera: Camera, holder: Holder,
                     look: EdgeLook = EdgeLook(), prior: RadiusPrior = RadiusPrior(),
                     max_iter: int = 30, huber_k: float = 2.5,
-                    r_grid=(0.0, 0.5, 1.0, 1.5, 2.0, 3.0, 4.0, 5.0, 6.0),
+                    r_grid=None,
                     table: OffsetTable | None = None) -> RadiusFit:
     """Levenberg-Marquardt on (DOFs, r) from ``dof0`` with the corners ``ideal_px`` given in
     model order (module doc).
@@ -248,7 +252,7 @@ def fit_pose_radius(dof0, ideal_px: np.ndarray, camera: Camera, holder: Holder,
     if table is None:
         table = OffsetTable(R0, np.asarray(dof0, float)[3:], K, holder, look)
     r, dof, profile = _scan_radius(np.asarray(dof0, float), q, table, holder, K, prior,
-                                   r_grid)
+                                   SCAN_RADII_MM if r_grid is None else r_grid)
     uv, J, _ = _model(dof, r, table, holder, K)
     # noise scale: robust, from the start's residuals (|e| of a 2-D Gaussian: median 1.18 s)
     s = max(0.02, float(np.median(np.linalg.norm(uv - q, axis=1))) / 1.18)
@@ -317,20 +321,20 @@ def refine_radius(est: PoseEstimate, ideal_px: np.ndarray, camera: Camera, holde
                                     f"{holder.n_corners}", info=est.info)
     q = _assigned(est, np.asarray(ideal_px, float), camera, holder)
     dof0 = Pose(est.R_cam_holder, est.t_cam_holder_mm).dof
-    fits = [fit_pose_radius(dof0, q, camera, holder, replace(look, shape=sh), prior)
-            for sh in shapes]
-    fits = [f for f in fits if np.all(np.isfinite(f.dof))]
-    if not fits:
+    # the edge's shape (a new holder's break is a fillet or a chamfer): the one whose radius
+    # scan fits the corners better (the scan's trimmed cost, one noise scale for both); the
+    # full fit only for that one
+    R0 = rotation_from_euler_deg(*dof0[:3])
+    tables = [OffsetTable(R0, dof0[3:], camera.K, holder, replace(look, shape=sh))
+              for sh in shapes]
+    cost = [min(c for _, c, _ in _scan_radius(dof0, q, t, holder, camera.K, prior,
+                                              SCAN_RADII_MM)[2]) for t in tables]
+    k = int(np.argmin(cost))
+    fit = fit_pose_radius(dof0, q, camera, holder, tables[k].look, prior, table=tables[k])
+    if not np.all(np.isfinite(fit.dof)):
         return PoseEstimate.failure(name, "the radius fit diverged", info=est.info)
-    # the edge's shape (a new holder's break is a fillet or a chamfer): the one whose corners
-    # fit better, by the same trimmed cost (one noise scale for both)
-    s = min(f.sigma_px for f in fits)
-    cost = [float(np.sum(np.minimum(np.sum(f.residuals_px ** 2, axis=1), (2.5 * s) ** 2)))
-            for f in fits]
-    fit = fits[int(np.argmin(cost))]
     info = dict(est.info, edge_radius_mm=fit.radius_mm, radius_fit=fit,
-                edge_shape=fit.table.look.shape, shape_costs=dict(
-                    zip([f.table.look.shape for f in fits], cost)),
+                edge_shape=fit.table.look.shape, shape_costs=dict(zip(shapes, cost)),
                 radius_iterations=fit.iterations, start_dof=dof0.tolist())
     pose = Pose.from_euler(*fit.dof)
     return PoseEstimate(method=name, R_cam_holder=pose.R, t_cam_holder_mm=pose.t_mm,
