@@ -152,6 +152,7 @@ def test_budget_in_json_covariance_and_grasp_point():
     f = detect_features(r.image, cam, HOLDER)
     m = measure_features(f, cam, HOLDER, "dm+r", SMALL)
     assert m.ok, m.quality.reason
+    assert m.estimate.info["edge_shape"] == "round"      # the preset's fillet, not a chamfer
     d = json.loads(json.dumps(m.to_dict()))
     b = d["quality"]["budget"]
     assert set(b["parts"]) == {"noise", "radius", "model", "edge_variation"}

@@ -64,6 +64,8 @@ __all__ = ["RadiusPrior", "RadiusFit", "fit_pose_radius", "refine_radius", "solv
            "fisher_pose_radius", "crlb_pose_radius", "model_offset_spread"]
 
 
+#: another edge shape replaces the fillet only when its scan cost is below this fraction
+SHAPE_MARGIN = 0.7
 #: the radii (mm) the fit starts from (the best one) and the budget's radius profile
 SCAN_RADII_MM = (0.0, 0.5, 1.0, 1.5, 2.0, 3.0, 4.0, 5.0, 6.0)
 
@@ -329,7 +331,12 @@ def refine_radius(est: PoseEstimate, ideal_px: np.ndarray, camera: Camera, holde
               for sh in shapes]
     cost = [min(c for _, c, _ in _scan_radius(dof0, q, t, holder, camera.K, prior,
                                               SCAN_RADII_MM)[2]) for t in tables]
+    # the first shape (the fillet, the common break) unless another fits clearly better: a
+    # chamfer images at its foot, a depth offset the contour cannot tell from Z, so a chamfer
+    # chosen on a tie would throw away the depth of a sharp or filleted edge
     k = int(np.argmin(cost))
+    if cost[k] > SHAPE_MARGIN * cost[0]:
+        k = 0
     fit = fit_pose_radius(dof0, q, camera, holder, tables[k].look, prior, table=tables[k])
     if not np.all(np.isfinite(fit.dof)):
         return PoseEstimate.failure(name, "the radius fit diverged", info=est.info)
