@@ -270,7 +270,8 @@ def measure_cmd(
     raw: str = typer.Option(None, "--raw", help="Read IMAGE as a raw Mono8 frame of "
                             "WIDTHxHEIGHT pixels (as a GigE camera delivers it; no decode)."),
     holder: str = typer.Option(None, help="Holder JSON file (default: the bundled holder)."),
-    method: str = typer.Option("dm+", help="Pose method (cutterpose.methods)."),
+    method: str = typer.Option("dm+r", help="Pose method (cutterpose.methods; dm+r: the design "
+                               "edge's pose through a rounded edge; dm: the paper's chain)."),
     overlay: str = typer.Option(None, "--overlay", help="Write an overlay PNG here."),
     as_json: bool = typer.Option(False, "--json", help="One JSON object on stdout."),
     chain: str = typer.Option("field", help="Image chain: field (gradient outline, robust "

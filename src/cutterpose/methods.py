@@ -51,6 +51,8 @@ _ENTRIES: dict[str, tuple[str, str, bool, str]] = {
                  "the paper as written: its initial pose (2.2) + distance matching (2.3)"),
     "dm+": ("cutterpose.solvers.matching", "solve_dm_plus", False,
             "distance matching + continuous correspondence-free refinement"),
+    "dm+r": ("cutterpose.solvers.edge_radius", "solve", False,
+             "dm+ + the radius of the broken pocket edge: the design edge's pose"),
 }
 
 

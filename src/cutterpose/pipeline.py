@@ -20,6 +20,15 @@ their Jacobian with respect to ``(alpha, beta, gamma, X, Y, Z)``,
 
     s^2 = |r|^2 / (40 - 6),        Cov = s^2 (J^T J)^-1,        std = sqrt(diag Cov).
 
+The default method is ``dm+r`` (:mod:`cutterpose.solvers.edge_radius`): ``dm+`` followed by the
+joint fit of the pose and the radius of the broken pocket edge, so that the pose is that of the
+design edge on field holders. The verdict is an error budget (:mod:`cutterpose.budget`): noise,
+radius, edge model and edge variation for ``dm+r`` (the std above and the edge-wear shift for
+the other methods), propagated to the position of a grasp point and to the rotation; a pose is
+refused when its 3-sigma figures exceed the tolerance (1 mm, 0.3 deg), with the reason. The
+camera-frame 6 x 6 covariance is ``Measurement.covariance_cam`` (order
+:data:`cutterpose.budget.COVARIANCE_CAM_ORDER`).
+
 Convention:
     Pose as in :mod:`cutterpose.geometry.pose` (holder in camera frame, mm, Z-Y-X Euler angles in
     deg).
@@ -31,12 +40,13 @@ from __future__ import annotations
 import json
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 
-from .errors import CutterposeError, FeatureError, ImageError
+from .budget import ErrorBudget, Tolerance, budget_from_dof_cov, budget_from_fit
+from .errors import CutterposeError, FeatureError, ImageError, InputError
 from .frames import load_frame
 from .geometry.camera import Camera, default_camera
 from .geometry.holder import Holder, default_holder
@@ -67,9 +77,13 @@ class QualityLimits:
     range_half_width_dof: tuple = (10.0, 10.0, 10.0, 20.0, 20.0, 20.0)
     range_tolerance_dof: tuple = (2.0, 2.0, 2.0, 5.0, 5.0, 5.0)
     max_std_dof: tuple = (0.5, 0.5, 0.5, 2.0, 2.0, 2.0)
-    #: worn edges: the largest pose shift the edges' possible outward offset may cause
-    #: (:func:`edge_wear_effect`), deg and mm
+    #: unused since the error budget (kept for callers that set it)
     max_edge_bias_dof: tuple = (0.2, 0.2, 0.2, 0.5, 0.5, 0.5)
+    #: the error budget's tolerance (3 sigma: 1 mm at the grasp point, 0.3 deg)
+    tolerance: Tolerance = Tolerance()
+    #: the point (holder frame, mm) whose position the budget checks: the origin, the centre of
+    #: the pocket's top plane (a holder file's grasp frame may be given instead)
+    grasp_point_mm: tuple = (0.0, 0.0, 0.0)
 
 
 @dataclass
@@ -84,13 +98,15 @@ class Quality:
     edge_bias_dof: np.ndarray | None = None
     edge_offset_px: float = math.nan   #: median possible outward offset of the edges
     note: str = ""                     #: a warning that does not refuse the pose
+    budget: ErrorBudget | None = None  #: the error budget (None without a pose)
 
     def to_dict(self) -> dict:
         return {"ok": self.ok, "reason": self.reason, "rms_residual_px": _f(self.rms_px),
                 "ambiguity_ratio": _f(self.ambiguity_ratio), "note": self.note,
                 "edge_offset_px": _f(self.edge_offset_px),
                 "edge_bias": None if self.edge_bias_dof is None else
-                {k: _f(v) for k, v in zip(DOF_NAMES, self.edge_bias_dof)}}
+                {k: _f(v) for k, v in zip(DOF_NAMES, self.edge_bias_dof)},
+                "budget": None if self.budget is None else self.budget.to_dict()}
 
 
 @dataclass
@@ -126,6 +142,20 @@ class Measurement:
     @property
     def ok(self) -> bool:
         return self.quality.ok
+
+    @property
+    def covariance_cam(self) -> np.ndarray | None:
+        """(6, 6) covariance of the camera-frame pose, order
+        :data:`cutterpose.budget.COVARIANCE_CAM_ORDER` (``x, y, z`` [mm] of ``t_cam_holder``,
+        ``rx, ry, rz`` [rad] about the holder's own axes); None without a pose."""
+        b = self.quality.budget
+        return None if b is None else b.covariance_cam
+
+    @property
+    def edge_radius_mm(self) -> float:
+        """The estimated radius of the pocket edge's break (``dm+r``; NaN otherwise)."""
+        b = self.quality.budget
+        return math.nan if b is None else b.radius_mm
 
     def pose_lines(self) -> list[str]:
         """The pose with its std and the residual as three short lines (CLI and overlay)."""
@@ -252,6 +282,23 @@ def edge_wear_effect(pose: Pose, features: Features, camera: Camera, holder: Hol
     return np.abs(shift), float(np.median(off))
 
 
+def _pose_cov(pose: Pose, corners_ideal_px: np.ndarray, camera: Camera, holder: Holder,
+              order: str = "contour") -> tuple[np.ndarray, np.ndarray]:
+    """(6, 6) ``s^2 (J^T J)^-1`` over the seen corners (module doc) and the residuals."""
+    dof = pose.dof
+    proj = _project_ideal(dof, camera, holder)
+    det = _match_to_projection(np.asarray(corners_ideal_px, float), proj, order)
+    seen = np.isfinite(det).all(axis=1)
+    r = (det - proj)[seen]
+    J = _jacobian(pose, camera, holder)[np.repeat(seen, 2)]
+    s2 = float(np.sum(r ** 2)) / max(r.size - 6, 1)
+    try:
+        cov = s2 * np.linalg.inv(J.T @ J)
+    except np.linalg.LinAlgError:
+        cov = np.full((6, 6), np.nan)
+    return cov, r
+
+
 def pose_std(pose: Pose, corners_ideal_px: np.ndarray, camera: Camera, holder: Holder,
              order: str = "contour") -> tuple[np.ndarray, np.ndarray]:
     """Per-DOF standard deviations from the residuals, ``s^2 (J^T J)^-1`` (module doc).
@@ -263,20 +310,8 @@ def pose_std(pose: Pose, corners_ideal_px: np.ndarray, camera: Camera, holder: H
     std : (6,) deg and mm.
     residuals : (n, 2) detected minus projected ideal pixels, model order (seen corners).
     """
-    dof = pose.dof
-    proj = _project_ideal(dof, camera, holder)
-    det = _match_to_projection(np.asarray(corners_ideal_px, float), proj, order)
-    seen = np.isfinite(det).all(axis=1)
-    r = (det - proj)[seen]
-    J = _jacobian(pose, camera, holder)[np.repeat(seen, 2)]
-    dof_free = r.size - 6
-    s2 = float(np.sum(r ** 2)) / max(dof_free, 1)
-    try:
-        cov = s2 * np.linalg.inv(J.T @ J)
-        std = np.sqrt(np.clip(np.diag(cov), 0, None))
-    except np.linalg.LinAlgError:
-        std = np.full(6, np.nan)
-    return std, r
+    cov, r = _pose_cov(pose, corners_ideal_px, camera, holder, order)
+    return np.sqrt(np.clip(np.diag(cov), 0, None)), r
 
 
 def _pose_from_homography(H: np.ndarray, camera: Camera):
@@ -323,6 +358,13 @@ def _solve(method: str, corners_px: np.ndarray, camera: Camera, holder: Holder,
     m = get_method(method)
     corners_px = np.asarray(corners_px, float)
     seen = np.isfinite(corners_px).all(axis=1)
+    if method == "dm+r":
+        from .solvers.edge_radius import refine_radius
+
+        est = _solve("dm+", corners_px, camera, holder, limits, order, H)
+        ideal = np.full_like(corners_px, np.nan)
+        ideal[seen] = camera.undistort_px(corners_px[seen])
+        return refine_radius(est, ideal, camera, holder, ordered=order == "holder")
     if method == "dm+" and order == "holder" and H is not None:
         est = _dm_plus_close(corners_px[seen], camera, holder, limits, H, seen.all())
         if est:
@@ -405,15 +447,16 @@ def _bias_text(bias) -> str:
 
 
 def _verdict(est: PoseEstimate, std, r, limits: QualityLimits, amb: float = math.nan,
-             bias=None, offset_px: float = math.nan) -> Quality:
+             bias=None, offset_px: float = math.nan, budget: ErrorBudget | None = None
+             ) -> Quality:
     if est is None or not est:
         return Quality(False, f"no pose: {est.reason if est is not None else 'not solved'}",
                        ambiguity_ratio=amb)
     rms = float(np.sqrt(np.mean(np.sum(r ** 2, axis=1))))
-    q = Quality(True, "", rms, amb, bias, offset_px)
+    q = Quality(True, "", rms, amb, bias, offset_px, budget=budget)
     if bias is not None and np.all(np.isfinite(bias)) and offset_px > 0.1:
         q.note = (f"edges worn: contour position uncertain by ~{offset_px:.1f} px, pose may be "
-                  f"biased by {_bias_text(bias)} (included in the std)")
+                  f"biased by {_bias_text(bias)} (in the error budget)")
     dof = Pose(est.R_cam_holder, est.t_cam_holder_mm).dof
     lo = np.subtract(limits.range_center_dof, limits.range_half_width_dof)
     hi = np.add(limits.range_center_dof, limits.range_half_width_dof)
@@ -432,18 +475,14 @@ def _verdict(est: PoseEstimate, std, r, limits: QualityLimits, amb: float = math
     elif math.isfinite(amb) and amb > limits.max_ambiguity_ratio:
         q.ok, q.reason = False, (f"planar ambiguity: a second pose fits almost as well (ratio "
                                  f"{amb:.2f} > {limits.max_ambiguity_ratio})")
-    elif bias is not None and (not np.all(np.isfinite(bias))
-                               or np.any(bias > np.asarray(limits.max_edge_bias_dof))):
-        q.ok, q.reason = False, (
-            f"edges worn: contour position uncertain by ~{q.edge_offset_px:.1f} px, pose may "
-            f"be biased by {_bias_text(bias)} (limits "
-            f"{list(limits.max_edge_bias_dof)})")
     elif not np.all(np.isfinite(std)) or np.any(std > np.asarray(limits.max_std_dof)):
         q.ok, q.reason = False, f"pose too uncertain: std {np.round(std, 3).tolist()}"
+    elif budget is not None and (why := budget.exceeds(limits.tolerance)):
+        q.ok, q.reason = False, why
     return q
 
 
-def measure_features(features: Features, camera: Camera, holder: Holder, method: str = "dm+",
+def measure_features(features: Features, camera: Camera, holder: Holder, method: str = "dm+r",
                      limits: QualityLimits | None = None) -> Measurement:
     """Pose, std and verdict from already detected features (one image, several methods)."""
     limits = limits or QualityLimits()
@@ -459,25 +498,38 @@ def measure_features(features: Features, camera: Camera, holder: Holder, method:
     std = np.full(6, np.nan)
     r = np.zeros((0, 2))
     pose = None
+    budget = None
     if est:
         pose = Pose(est.R_cam_holder, est.t_cam_holder_mm)
-        std, r = pose_std(pose, features.corners_ideal_px, camera, holder, features.order)
         bias, offset_px = edge_wear_effect(pose, features, camera, holder)
-        # a systematic error the residuals do not show: added to the reported std
-        std = np.sqrt(std ** 2 + bias ** 2)
+        fit = est.info.get("radius_fit")
+        if fit is not None:
+            # dm+r: the model corners of the broken edge give the residuals and the budget
+            r = fit.residuals_px
+            budget = budget_from_fit(fit, camera, holder, limits.grasp_point_mm,
+                                     limits.tolerance)
+        else:
+            cov, r = _pose_cov(pose, features.corners_ideal_px, camera, holder, features.order)
+            parts = {"noise": np.where(np.isfinite(cov), cov, np.inf)}
+            if bias is not None and np.all(np.isfinite(bias)):
+                # a systematic error the residuals do not show
+                parts["wear"] = np.diag(bias ** 2)
+            budget = budget_from_dof_cov(parts, pose.dof, limits.grasp_point_mm,
+                                         limits.tolerance)
+        std = budget.std_dof
     else:
         bias, offset_px = None, math.nan
     amb = ambiguity_ratio(est, features.corners_ideal_px, camera, holder,
                           order=features.order)
-    q = _verdict(est, std, r, limits, amb, bias, offset_px)
+    q = _verdict(est, std, r, limits, amb, bias, offset_px, budget)
     timings["quality"] = (time.perf_counter() - t0) * 1e3
     return Measurement(method, pose, std, q, features.visible_corners_px, features, est, timings)
 
 
 def measure(image, camera: Camera | None = None, holder: Holder | None = None,
-            method: str = "dm+", params: FeatureParams | None = None,
-            limits: QualityLimits | None = None, *, handeye=None, T_base_flange=None,
-            robot_accuracy=None) -> Measurement:
+            method: str = "dm+r", params: FeatureParams | None = None,
+            limits: QualityLimits | None = None, grasp_point_mm=None, *, handeye=None,
+            T_base_flange=None, robot_accuracy=None) -> Measurement:
     """Measure the holder's pose in one image (and, given ``handeye`` and ``T_base_flange``,
     in the robot's base frame: :func:`cutterpose.robot.locate`, result in ``.robot``).
 
@@ -487,10 +539,13 @@ def measure(image, camera: Camera | None = None, holder: Holder | None = None,
         8-bit frame buffer of the camera's size (bytes, bytearray, memoryview: used in place,
         no decode), or a grey/colour array of the camera's size (:mod:`cutterpose.frames`).
     camera, holder : defaults: the Table 1 camera and ``holder.json``.
-    method : a registered pose method (``dm+`` by default).
+    method : a registered pose method (``dm+r`` by default: ``dm+`` and the edge radius; the
+        paper's method is ``dm`` / ``dm-paper`` with ``FeatureParams.paper()``).
     params : image processing parameters (default: the field chain,
         ``FeatureParams.for_camera(camera)``; ``FeatureParams.paper()`` for section 2.1's).
     limits : when to refuse a pose.
+    grasp_point_mm : (3,) holder-frame point whose position the error budget checks (default
+        ``limits.grasp_point_mm``, the origin: the centre of the pocket's top plane).
     handeye, T_base_flange, robot_accuracy : see :func:`cutterpose.robot.locate`.
 
     Returns
@@ -505,11 +560,16 @@ def measure(image, camera: Camera | None = None, holder: Holder | None = None,
         The file is missing or not an image; the image has the wrong size, or is black,
         saturated or uniform.
     InputError
-        Unknown method.
+        Unknown method; a grasp point that is not 3 finite numbers.
     """
     camera = camera or default_camera("table1")
     holder = holder or default_holder()
     get_method(method)  # unknown names fail before any work
+    if grasp_point_mm is not None:
+        p = np.asarray(grasp_point_mm, float).reshape(-1)
+        if p.shape != (3,) or not np.all(np.isfinite(p)):
+            raise InputError(f"grasp_point_mm must be 3 finite numbers, got {grasp_point_mm!r}")
+        limits = replace(limits or QualityLimits(), grasp_point_mm=tuple(p.tolist()))
     t0 = time.perf_counter()
     load_ms = 0.0
     if not isinstance(image, np.ndarray):
@@ -545,7 +605,7 @@ def _with_robot(m: Measurement, camera, holder, handeye, T_base_flange, robot_ac
     return m
 
 
-def demo(out_dir, method: str = "dm+", seed: int = 7, echo=print) -> Measurement:
+def demo(out_dir, method: str = "dm+r", seed: int = 7, echo=print) -> Measurement:
     """The ``make demo`` example: render a seeded image of the holder (renderer, preset
     "easy", Table 1 camera), measure it, write ``demo.png``, ``demo_overlay.png`` and
     ``demo.json`` (with the true pose) into ``out_dir``, and report through ``echo`` (None:

@@ -53,6 +53,7 @@ import numpy as np
 from scipy.ndimage import gaussian_filter1d
 from scipy.spatial.transform import Rotation
 
+from .budget import Tolerance
 from .errors import CutterposeError, InputError
 from .frames import load_frame
 from .geometry.camera import Camera, default_camera
@@ -184,9 +185,12 @@ class TrackParams:
 
 def approach_limits() -> QualityLimits:
     """Quality limits of the full measurement during an approach: the working range's angles,
-    lateral shifts up to 60 mm, depths from 580 to 940 mm."""
+    lateral shifts up to 60 mm, depths from 580 to 940 mm, and an error budget of 10 mm / 3 deg
+    (3 sigma): on the way the pose guides the robot and seeds the tracker; the grasp tolerance
+    (1 mm, ``Tolerance()``) is the verdict of the measurement at the final stop."""
     return QualityLimits(range_center_dof=(0.0, 0.0, 0.0, 0.0, 0.0, 760.0),
-                         range_half_width_dof=(10.0, 10.0, 10.0, 60.0, 60.0, 180.0))
+                         range_half_width_dof=(10.0, 10.0, 10.0, 60.0, 60.0, 180.0),
+                         tolerance=Tolerance(position_mm=10.0, angle_deg=3.0))
 
 
 def approach_params(camera: Camera) -> FeatureParams:

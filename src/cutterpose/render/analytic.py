@@ -106,6 +106,12 @@ class RenderSettings:
     corrosion_darkening: float = 0.3
     edge_wear_mm: float = 0.0        # mean width of the worn band along the inner contour
     edge_wear_darkening: float = 0.7
+    # broken pocket edge (real geometry, ray-traced): a quarter-cylinder fillet ("round") or a
+    # 45 deg chamfer of radius / leg edge_radius_mm along each pocket edge, the radius of edge k
+    # drawn uniformly in edge_radius_mm * (1 +- edge_radius_spread)
+    edge_radius_mm: float = 0.0
+    edge_radius_spread: float = 0.0
+    edge_shape: str = "round"
     # occlusion: number of corners partly covered by a lump of muck in front of the holder
     occluded_corners: int = 0
     occluder_radius_px: float = 55.0
@@ -151,6 +157,10 @@ PRESETS: dict[str, RenderSettings] = {
                             cutter_semi_axes_mm=(175.0, 32.0), edge_lumps=2,
                             occluded_corners=1, corrosion=0.18, scratches=80,
                             lump_dn=(15.0, 120.0)),
+    # broken edges of a new holder (0.5-1.5 mm) and rounded worn ones (1.5-4.5 mm)
+    "new": RenderSettings(name="new", edge_radius_mm=1.0, edge_radius_spread=0.5),
+    "rounded": RenderSettings(name="rounded", edge_radius_mm=3.0, edge_radius_spread=0.5,
+                              corrosion=0.25, corrosion_darkening=0.5, texture=0.14),
     "hard": RenderSettings(name="hard", light_dn=140.0, beam_sigma_deg=30.0, electrons_per_dn=5.0,
                            read_noise_dn=2.5, edge_wear_mm=4.0, corrosion=0.25, scratches=120,
                            corrosion_darkening=0.5,
@@ -161,7 +171,7 @@ PRESETS: dict[str, RenderSettings] = {
 
 def preset(name: str) -> RenderSettings:
     """The named preset (``easy``, ``dim``, ``worn``, ``occluded``, ``blurred``, ``hard``,
-    ``cutter``, ``field``)."""
+    ``cutter``, ``field``, ``new``, ``rounded``)."""
     try:
         return PRESETS[name]
     except KeyError:
@@ -190,6 +200,8 @@ class Rendered:
     settings: RenderSettings
     seed: int
     occluded_corners: list[int] = field(default_factory=list)
+    #: (N,) radius of each pocket edge's break (mm; edge k from corner k to k + 1), if any
+    edge_radius_mm: list[float] = field(default_factory=list)
 
     def truth_dict(self, file: str | None = None) -> dict:
         """The image's entry of an image-set ``truth.json`` (PROTOCOL.md, exchange formats)."""
@@ -198,6 +210,8 @@ class Rendered:
                   "corners_px": self.corners_px.tolist(), "difficulty": self.settings.name,
                   "dof": self.pose.dof.tolist(), "seed": self.seed,
                   "occluded_corners": list(self.occluded_corners)})
+        if self.edge_radius_mm:
+            d["edge_radius_mm"] = [float(r) for r in self.edge_radius_mm]
         return d
 
 
@@ -383,6 +397,16 @@ class _Scene:
             dr, axis=1)[:, None]
         self.rect_arc0 = np.concatenate([[0.0], np.cumsum(np.linalg.norm(dr, axis=1))[:-1]])
         self._make_textures(rng)
+        r_edge = rng.spawn(1)[0]  # after the textures' streams: they stay as they were
+        self.edge_radius = np.zeros(len(c))
+        if settings.edge_radius_mm > 0:
+            if settings.edge_shape not in ("round", "chamfer"):
+                raise InputError("edge_shape must be 'round' or 'chamfer', got "
+                                 f"{settings.edge_shape!r}")
+            self.edge_radius = settings.edge_radius_mm * (
+                1.0 + settings.edge_radius_spread * r_edge.uniform(-1, 1, len(c)))
+        self.edge_len = np.linalg.norm(d, axis=1)
+        self.edge_dir = d / self.edge_len[:, None]
 
     # --- textures --------------------------------------------------------------------------
     def _make_textures(self, rng: np.random.Generator):
@@ -502,6 +526,9 @@ class _Scene:
         top = in_rect & ~in_pocket
         # cos(i) of a face with normal -Z: n . (-d/|d|) in the holder frame = dz / |d|
         cos_flat = dz / norm_d
+        if self.edge_radius.max() > 0:
+            self._trace_broken_edges(ok, top, in_pocket, X0, Y0, s0, (dx, dy, dz, norm_d),
+                                     falloff, label, value)
         i = np.flatnonzero(top)
         if i.size:
             label[i] = TOP
@@ -559,6 +586,83 @@ class _Scene:
                     (dx, dy, norm_d, falloff), self.rect_edges, self.rect_outward,
                     self.rect_arc0, s.outer_wall_albedo)
         return label, value
+
+    def _trace_broken_edges(self, ok, top, in_pocket, X0, Y0, s0, ray, falloff, label, value):
+        """Rays that meet the broken pocket edge: shaded here and removed from ``top`` /
+        ``in_pocket`` (edited in place); rays that cross the cut-away band and miss it go on
+        into the pocket.
+
+        In the local frame of edge k (``s`` outwards from the pocket, ``z`` depth, both 0 at the
+        design edge) a ray leaving the plane ``Z = 0`` at ``s0`` goes ``s = s0 + mu d_s``,
+        ``z = mu d_z`` (``mu`` in camera-depth units). Fillet (circle of radius r about
+        ``(r, r)``, the quadrant ``s, z <= r``): the entry root of
+        ``(d_s^2 + d_z^2) mu^2 + 2 ((s0 - r) d_s - r d_z) mu + (s0 - r)^2 = 0``; chamfer (the
+        plane ``s + z = r``): ``mu = (r - s0) / (d_s + d_z)``.
+        """
+        dx, dy, dz, norm_d = ray
+        rmax = float(self.edge_radius.max())
+        # a ray reaches the break within a few radii of the edge (|d_s / d_z| < 1 in the rig)
+        near = ok & (top | in_pocket)
+        idx = np.flatnonzero(near)
+        if not idx.size:
+            return
+        best = np.full(idx.size, np.inf)
+        hit_e = np.full(idx.size, -1, np.int64)
+        band = np.zeros(idx.size, bool)
+        X, Y = X0[idx].astype(np.float64), Y0[idx].astype(np.float64)
+        DX, DY, DZ = dx[idx].astype(np.float64), dy[idx].astype(np.float64), dz[idx].astype(
+            np.float64)
+        n_s = np.zeros(idx.size)
+        n_z = np.zeros(idx.size)
+        round_ = self.s.edge_shape == "round"
+        for k, r in enumerate(self.edge_radius):
+            o = -self.inward[k]
+            tk = self.edge_dir[k]
+            e0 = self.edges[k, 0]
+            sk = (X - e0[0]) * o[0] + (Y - e0[1]) * o[1]
+            tt = (X - e0[0]) * tk[0] + (Y - e0[1]) * tk[1]
+            m = (sk > -3 * rmax - 1) & (sk < r) & (tt >= 0) & (tt <= self.edge_len[k])
+            band |= m & (sk >= 0)
+            j = np.flatnonzero(m)
+            if not j.size:
+                continue
+            s_0, ds = sk[j], DX[j] * o[0] + DY[j] * o[1]
+            dzj = DZ[j]
+            with np.errstate(invalid="ignore", divide="ignore"):
+                if round_:
+                    A = ds * ds + dzj * dzj
+                    B = (s_0 - r) * ds - r * dzj
+                    disc = B * B - A * (s_0 - r) ** 2
+                    mu = (-B - np.sqrt(disc)) / A
+                else:
+                    mu = (r - s_0) / (ds + dzj)
+            ss, zz = s_0 + mu * ds, mu * dzj
+            good = (np.isfinite(mu) & (mu >= 0) & (ss >= -1e-9) & (ss <= r + 1e-9)
+                    & (zz <= r + 1e-9) & (mu < best[j]))
+            g = j[good]
+            best[g] = mu[good]
+            hit_e[g] = k
+            if round_:
+                n_s[g], n_z[g] = (ss[good] - r) / r, (zz[good] - r) / r
+            else:
+                n_s[g], n_z[g] = -np.sqrt(0.5), -np.sqrt(0.5)
+        hit = hit_e >= 0
+        fi = idx[hit]
+        top[idx[band]] = False
+        in_pocket[idx[band & ~hit]] = True      # past the break's silhouette: into the pocket
+        top[fi] = False
+        in_pocket[fi] = False
+        if not fi.size:
+            return
+        e = hit_e[hit]
+        o = -self.inward[e]
+        nx, ny, nz = n_s[hit] * o[:, 0], n_s[hit] * o[:, 1], n_z[hit]
+        cos_i = -(nx * DX[hit] + ny * DY[hit] + nz * DZ[hit]) / norm_d[fi]
+        mu = best[hit]
+        Xh, Yh = X[hit] + mu * DX[hit], Y[hit] + mu * DY[hit]
+        label[fi] = TOP
+        value[fi] = shade_points(cos_i, (s0[fi] + mu) * norm_d[fi], self.top_albedo(Xh, Yh),
+                                 self.top_gloss(Xh, Yh), falloff[fi], self.s)
 
     def _shade_wall(self, wi, e, f, s1, depth_mm, seg, ray, edges, normals, arc0, albedo):
         """Grey levels of rays ``wi`` that hit wall ``e`` at fraction ``f`` of their segment
@@ -768,7 +872,9 @@ def render_holder(pose: Pose | None = None, camera: Camera | None = None,
         _occlude(value, mids, settings, r_field, settings.edge_lumps, settings.lump_dn)
     value = defocus(value, settings.defocus_sigma_px, settings.defocus_kernel)
     image = add_sensor_noise(value, settings, r_noise)
-    return Rendered(image, corners_px, pose, settings, int(seed), occluded)
+    return Rendered(image, corners_px, pose, settings, int(seed), occluded,
+                    [float(r) for r in scene.edge_radius] if scene.edge_radius.max() > 0
+                    else [])
 
 
 def save_rendered(rendered: Rendered, out_path, camera: Camera | None = None,

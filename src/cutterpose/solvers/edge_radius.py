@@ -1,0 +1,429 @@
+"""``dm+r``: the pose of the *design* edge and the edge radius, jointly (issue 10, item 2).
+
+A broken (rounded or chamfered) pocket edge images away from the design edge by an offset
+``delta(r)`` that depends on the radius ``r`` and on the view and light at each edge
+(:mod:`cutterpose.image.edge_model`). ``dm+`` fits the design corners to those image corners
+and is biased (a uniform outward offset looks like a closer holder). ``dm+r`` starts from the
+``dm+`` pose and its one-to-one corner assignment and minimises, over the six DOFs and one
+radius per image,
+
+    sum_i rho(|W_i (pi(R P_i(r) + t) - q_i)|^2) + s^2 ((r - r_0) / sigma_r)^2,
+
+with ``P_i(r) = c_i + delta_(i,0)(r) o_(i-1) + delta_(i,1)(r) o_i`` the model corner of the
+moved edge lines (``Z = 0``), ``q_i`` the detected corner (ideal px), ``W_i`` the whitening of
+the corner's noise plus the edge model's uncertainty at that corner, ``rho`` Huber's loss (an
+edge whose line locked onto a rival rise, a specular line on the fillet, is an outlier) and a
+weak Gaussian prior on ``r`` (mean 2 mm, std 2 mm, clamped to [0, 6.5] mm), scaled by the
+residual noise ``s``. Gauss-Newton / Levenberg-Marquardt in the DOFs themselves, so that the
+normal matrix is the Fisher information in the pipeline's units.
+
+Why one radius per image (the Fisher information, ``docs/notes/edge_model.md``): a free offset
+per edge is confounded with the pose (moving the two edges of one direction by opposite amounts
+is a translation, all edges outward a change of depth), so per-edge radii are unobservable
+without a strong prior; per edge family (X-parallel and Y-parallel edges) they are observable
+but cost a factor of 1.5-2 in the std of Z. One radius, with per-edge deviations in the error
+budget, is what this contour supports.
+
+Convention:
+    Pose as in :mod:`cutterpose.geometry.pose` (``x_cam = R x_holder + t``, DOFs alpha, beta,
+    gamma [deg], X, Y, Z [mm]); the estimate vector is ``(alpha, beta, gamma, X, Y, Z, r)``
+    with ``r`` in mm; pixels are ideal (undistorted) pixels of the camera's ``K``.
+
+References:
+    Seed paper, sections 2.3 (distance matching) and 3.1 (the CRLB context); Kay,
+    *Fundamentals of Statistical Signal Processing I* (1993), ch. 3 (Fisher information, the
+    CRLB with nuisance parameters); Huber (1964) for the robust loss.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+from scipy.optimize import least_squares, linear_sum_assignment
+from scipy.spatial.distance import cdist
+
+from ..errors import InputError
+from ..geometry.camera import Camera
+from ..geometry.holder import Holder
+from ..geometry.pose import Pose, rotation_from_euler_deg
+from ..image.edge_model import (
+    LOOK_VARIANTS,
+    EdgeLook,
+    OffsetTable,
+    corner_offset_jacobian,
+    edge_offsets_mm,
+    edge_views,
+    model_corners_mm,
+)
+from .estimate import PoseEstimate
+
+__all__ = ["RadiusPrior", "RadiusFit", "fit_pose_radius", "refine_radius", "solve",
+           "fisher_pose_radius", "crlb_pose_radius", "model_offset_spread"]
+
+
+#: another edge shape replaces the fillet only when its scan cost is below this fraction
+SHAPE_MARGIN = 0.7
+#: the radii (mm) the fit starts from (the best one) and the budget's radius profile
+SCAN_RADII_MM = (0.0, 0.5, 1.0, 1.5, 2.0, 3.0, 4.0, 5.0, 6.0)
+
+
+@dataclass(frozen=True)
+class RadiusPrior:
+    """The weak prior on the edge radius (mm): a new holder's break is 0.5-1.5 mm, a worn one
+    1.5-5 mm; a Gaussian of ``mean_mm`` and ``std_mm`` clamped to ``[min_mm, max_mm]``."""
+
+    mean_mm: float = 2.0
+    std_mm: float = 2.0
+    min_mm: float = 0.0
+    max_mm: float = 6.5
+
+    def __post_init__(self):
+        if not (self.std_mm > 0 and self.min_mm >= 0 and self.max_mm > self.min_mm
+                and math.isfinite(self.mean_mm)):
+            raise InputError(f"bad radius prior {self}")
+
+
+@dataclass
+class RadiusFit:
+    """What :func:`fit_pose_radius` found, with what the error budget needs.
+
+    Attributes
+    ----------
+    dof : (6,) pose DOFs; radius_mm : the edge radius.
+    residuals_px : (N, 2) detected minus model corners (ideal px), model order.
+    jacobian : (2N, 7) d model pixels / d (DOFs, r) at the solution.
+    weights : (N,) robust weights of the corners (1: inlier).
+    whitening : (N, 2, 2) the corners' whitening ``W_i`` (1 / px).
+    info : (7, 7) the normal matrix ``J^T W^T W J`` + the prior (1 / unit^2).
+    sigma_px : the noise scale ``s`` (robust, from the start's residuals).
+    table : the offsets' table at the solution's view.
+    rms_px : RMS corner residual; iterations : function evaluations of the minimiser.
+    profile : ``(r, cost, dof)`` of the radius scan (:func:`_scan_radius`).
+    """
+
+    dof: np.ndarray
+    radius_mm: float
+    residuals_px: np.ndarray
+    jacobian: np.ndarray
+    weights: np.ndarray
+    whitening: np.ndarray
+    info: np.ndarray
+    sigma_px: float
+    table: OffsetTable
+    rms_px: float
+    iterations: int
+    profile: list = field(default_factory=list)
+
+
+def _rotation_and_derivatives(dof):
+    """R = Rz(gamma) Ry(beta) Rx(alpha) and its derivatives w.r.t. the angles in degrees."""
+    a, b, g = np.radians(dof[:3])
+    ca, sa, cb, sb, cg, sg = np.cos(a), np.sin(a), np.cos(b), np.sin(b), np.cos(g), np.sin(g)
+    Rx = np.array([[1, 0, 0], [0, ca, -sa], [0, sa, ca]])
+    Ry = np.array([[cb, 0, sb], [0, 1, 0], [-sb, 0, cb]])
+    Rz = np.array([[cg, -sg, 0], [sg, cg, 0], [0, 0, 1]])
+    dRx = np.array([[0, 0, 0], [0, -sa, -ca], [0, ca, -sa]])
+    dRy = np.array([[-sb, 0, cb], [0, 0, 0], [-cb, 0, -sb]])
+    dRz = np.array([[-sg, -cg, 0], [cg, -sg, 0], [0, 0, 0]])
+    k = np.pi / 180.0
+    return Rz @ Ry @ Rx, np.stack([Rz @ Ry @ dRx, Rz @ dRy @ Rx, dRz @ Ry @ Rx]) * k
+
+
+def _model(dof, r, table: OffsetTable, holder: Holder, K):
+    """Model pixels (N, 2), their Jacobian (2N, 7) w.r.t. (DOFs, r) and the model corners
+    (N, 3). (The pose part is :func:`cutterpose.geometry.pose.pixel_jacobian` for one pose,
+    written out: this is the solver's inner loop.)"""
+    R, dR = _rotation_and_derivatives(dof)
+    delta, slope = table(r)
+    P = model_corners_mm(holder, delta, table.view.outward)
+    X = P @ R.T + dof[3:]
+    Z = X[:, 2]
+    fx, sk, fy = K[0, 0], K[0, 1], K[1, 1]
+    uv = (X @ K.T)[:, :2] / Z[:, None]
+    Jt = np.zeros((len(P), 2, 3))                                         # d px / d X_cam
+    Jt[:, 0, 0], Jt[:, 0, 1] = fx / Z, sk / Z
+    Jt[:, 0, 2] = -(fx * X[:, 0] + sk * X[:, 1]) / Z ** 2
+    Jt[:, 1, 1], Jt[:, 1, 2] = fy / Z, -fy * X[:, 1] / Z ** 2
+    dX_ang = np.einsum("kij,nj->nik", dR, P)                              # (N, 3, 3)
+    dP_dr = np.einsum("nk,nkj->nj", slope, table.view.outward)            # (N, 2)
+    dX_r = dP_dr @ R[:, :2].T                                             # (N, 3)
+    J = np.concatenate([np.einsum("nij,njk->nik", Jt, dX_ang), Jt,
+                        np.einsum("nij,nj->ni", Jt, dX_r)[..., None]], axis=2)
+    return uv, J.reshape(-1, 7), P
+
+
+def model_offset_spread(table: OffsetTable, radius_mm: float, camera: Camera, holder: Holder,
+                        dof, looks=LOOK_VARIANTS) -> tuple[np.ndarray, np.ndarray]:
+    """The edge model's remaining uncertainty at ``radius_mm``: per edge end the offsets under
+    each plausible light and material (``looks``) and under the rival rise of the profile.
+
+    Returns
+    -------
+    deltas : (L, N, 2) offsets (mm) under each look, minus the nominal one (the systematic
+        errors the budget propagates).
+    sigma_mm : (N, 2) per edge end, the RMS of those plus, where a rival rise is at least 0.6
+        of the edge's, half the distance to it (the refinement may take either).
+    """
+    R = rotation_from_euler_deg(*dof[:3])
+    d0 = table(radius_mm)[0]
+    out = []
+    for look in looks:
+        if look == table.look:
+            continue
+        v = edge_views(R, dof[3:], camera.K, holder, look)
+        d = edge_offsets_mm(np.array([radius_mm]), v, look)["delta_mm"][..., 0]
+        out.append(np.where(np.isfinite(d), d - d0, 0.0))
+    deltas = np.array(out) if out else np.zeros((0,) + d0.shape)
+    v = table.view
+    o = edge_offsets_mm(np.array([radius_mm]), v, table.look)
+    ratio = o["rival_ratio"][..., 0]
+    gap = np.abs(o["rival_delta_mm"][..., 0] - o["delta_mm"][..., 0])
+    rival = np.where((ratio >= 0.6) & np.isfinite(gap), 0.5 * gap, 0.0)
+    sig = np.sqrt(np.mean(deltas ** 2, axis=0) + rival ** 2) if len(deltas) else rival
+    return deltas, sig
+
+
+def _whitening(sigma_px: float, sig_end_mm: np.ndarray, table: OffsetTable, Jt6: np.ndarray,
+               R: np.ndarray) -> np.ndarray:
+    """(N, 2, 2) whitening of each corner: noise ``sigma_px^2 I`` plus the edge model's
+    uncertainty of its two edges (``sig_end_mm``) seen in the image."""
+    o = table.view.outward                                               # (N, 2, 2)
+    o3 = np.concatenate([o, np.zeros(o.shape[:2] + (1,))], axis=-1) @ R.T  # camera frame
+    Jt = Jt6.reshape(-1, 2, 3)
+    img = np.einsum("nij,nkj->nki", Jt, o3)                              # (N, 2 ends, 2 px)
+    C = sigma_px ** 2 * np.eye(2)[None] + np.einsum("nk,nki,nkj->nij", sig_end_mm ** 2, img,
+                                                     img)
+    L = np.linalg.cholesky(C)
+    return np.linalg.inv(L)
+
+
+def _scan_radius(dof, q, table, holder, K, prior: RadiusPrior, r_grid):
+    """Profile of the fit over the radius: for each ``r`` of the grid, the pose after three
+    Gauss-Newton steps from ``dof`` and its robust cost (plus the prior). Returns the best
+    radius, its pose and the profile ``(r, cost, dof)`` rows (the offsets are not monotone in
+    r, so a local fit from one start can stop in the wrong valley, and the budget needs to know
+    whether another valley fits nearly as well)."""
+    rows = []
+    s2 = None
+    seen = np.isfinite(q).all(axis=1)
+    rows2 = np.repeat(seen, 2)
+    for r in r_grid:
+        if not prior.min_mm <= r <= prior.max_mm:
+            continue
+        d = np.array(dof, float)
+        for _ in range(3):
+            uv, J, _ = _model(d, r, table, holder, K)
+            d = d - np.linalg.lstsq(J[rows2, :6], (uv - q)[seen].ravel(), rcond=None)[0]
+        e = np.linalg.norm(_model(d, r, table, holder, K)[0][seen] - q[seen], axis=1)
+        if s2 is None:
+            s2 = max(0.05, float(np.median(e))) ** 2
+        cost = float(np.sum(np.minimum(e ** 2, 4 * s2))) + s2 * (
+            (r - prior.mean_mm) / prior.std_mm) ** 2
+        rows.append((float(r), cost, d))
+    best = min(rows, key=lambda row: row[1])
+    return best[0], best[2], rows
+
+
+def _huber(z: np.ndarray, k: float) -> np.ndarray:
+    """Huber weights of whitened 2-D residuals (N, 2)."""
+    e = np.linalg.norm(z, axis=1)
+    return np.where(e <= k, 1.0, k / np.maximum(e, 1e-12))
+
+
+def fit_pose_radius(dof0, ideal_px: np.ndarray, camera: Camera, holder: Holder,
+                    look: EdgeLook = EdgeLook(), prior: RadiusPrior = RadiusPrior(),
+                    max_iter: int = 30, huber_k: float = 2.5,
+                    r_grid=None,
+                    table: OffsetTable | None = None) -> RadiusFit:
+    """Levenberg-Marquardt on (DOFs, r) from ``dof0`` with the corners ``ideal_px`` given in
+    model order (module doc).
+
+    The offsets' table is made once at ``dof0`` (the offsets follow the viewing direction, not
+    the millimetres the fit moves); a scan over ``r_grid`` picks the start; the first pass
+    whitens the corners by the noise ``s`` alone (the robust scale of the start's residuals),
+    the second by the noise plus the edge model's rival rises at the radius found (``table``:
+    a table made before for a view close to ``dof0``, e.g. for repeated fits). The
+    minimiser is SciPy's trust-region reflective ``least_squares`` with Huber's loss on each
+    whitened coordinate and the bounds of the prior on ``r``.
+    """
+    K = camera.K
+    q = np.asarray(ideal_px, float)
+    n = len(q)
+    seen = np.isfinite(q).all(axis=1)
+    R0 = rotation_from_euler_deg(*np.asarray(dof0, float)[:3])
+    if table is None:
+        table = OffsetTable(R0, np.asarray(dof0, float)[3:], K, holder, look)
+    r, dof, profile = _scan_radius(np.asarray(dof0, float), q, table, holder, K, prior,
+                                   SCAN_RADII_MM if r_grid is None else r_grid)
+    uv, J, _ = _model(dof, r, table, holder, K)
+    # a corner not seen: a finite placeholder with zero whitening, so it adds nothing
+    q = np.where(seen[:, None], q, uv)
+    # noise scale: robust, from the start's residuals (|e| of a 2-D Gaussian: median 1.18 s)
+    s = max(0.02, float(np.median(np.linalg.norm(uv - q, axis=1)[seen])) / 1.18)
+    it = 0
+    sig_end = np.zeros((n, 2))
+    inv_sr = 1.0 / prior.std_mm
+    x = np.r_[dof, r]
+    lo = np.r_[np.full(6, -np.inf), prior.min_mm]
+    hi = np.r_[np.full(6, np.inf), prior.max_mm]
+    for pass_ in range(2):
+        if pass_:
+            sig_end = model_offset_spread(table, x[6], camera, holder, x[:6], ())[1]
+        W = _whitening(s, sig_end, table, J[:, 3:6], R0) * seen[:, None, None]
+
+        def fun(x_, W=W):
+            uv_ = _model(x_[:6], x_[6], table, holder, K)[0]
+            z_ = np.einsum("nij,nj->ni", W, uv_ - q).ravel()
+            return np.r_[z_, (x_[6] - prior.mean_mm) * inv_sr]
+
+        def jac(x_, W=W):
+            J_ = _model(x_[:6], x_[6], table, holder, K)[1]
+            Jw_ = np.einsum("nij,njk->nik", W, J_.reshape(n, 2, 7)).reshape(-1, 7)
+            return np.vstack([Jw_, np.r_[np.zeros(6), inv_sr]])
+
+        # Huber's loss on each whitened coordinate (scipy's trust-region reflective, bounds on r)
+        sol = least_squares(fun, np.clip(x, lo, hi), jac, bounds=(lo, hi), loss="huber",
+                            f_scale=huber_k, x_scale="jac", max_nfev=max_iter)
+        x = sol.x
+        it += sol.nfev
+    dof, r = x[:6], float(x[6])
+    uv, J, _ = _model(dof, r, table, holder, K)
+    res = np.where(seen[:, None], uv - q, 0.0)
+    z = np.einsum("nij,nj->ni", W, res)
+    wt = _huber(z, huber_k) * seen
+    Jw = (np.einsum("nij,njk->nik", W, J.reshape(n, 2, 7)) * np.sqrt(wt)[:, None, None]
+          ).reshape(-1, 7)
+    H = Jw.T @ Jw
+    H[6, 6] += inv_sr ** 2
+    rms = float(np.sqrt(np.mean(np.sum(res[seen] ** 2, axis=1))))
+    return RadiusFit(dof, r, res, J, wt, W, H, s, table, rms, it, profile)
+
+
+def _assigned(est: PoseEstimate, ideal_px: np.ndarray, camera: Camera, holder: Holder):
+    """Detected corners in model order: the solver's assignment, else the nearest one-to-one
+    assignment to the estimate's projection."""
+    col = est.info.get("assignment")
+    if col is None or len(col) != holder.n_corners or len(ideal_px) != holder.n_corners:
+        R, t = np.asarray(est.R_cam_holder, float), np.asarray(est.t_cam_holder_mm, float)
+        X = holder.points_holder_mm @ R.T + t
+        uv = (X @ camera.K.T)[:, :2] / X[:, 2:3]
+        col = linear_sum_assignment(cdist(uv, ideal_px, "sqeuclidean"))[1]
+    return np.asarray(ideal_px, float)[np.asarray(col)]
+
+
+def refine_radius(est: PoseEstimate, ideal_px: np.ndarray, camera: Camera, holder: Holder,
+                  look: EdgeLook = EdgeLook(), prior: RadiusPrior = RadiusPrior(),
+                  name: str = "dm+r", shapes=("round", "chamfer"),
+                  ordered: bool = False) -> PoseEstimate:
+    """The refinement step after a solver: ``est`` -> the design-edge pose and the radius
+    (``info["edge_radius_mm"]``, ``info["radius_fit"]`` the :class:`RadiusFit`), fitted for
+    each edge ``shapes`` and the better kept (``info["edge_shape"]``).
+
+    ``ordered``: ``ideal_px`` is already in model order (the field chain), NaN rows for the
+    corners not seen, which the fit leaves out; else the solver's assignment orders them."""
+    if not est:
+        return PoseEstimate.failure(name, est.reason, info=est.info)
+    t0 = time.perf_counter()
+    if len(ideal_px) != holder.n_corners:
+        return PoseEstimate.failure(name, f"{len(ideal_px)} corners: the radius fit needs all "
+                                    f"{holder.n_corners}", info=est.info)
+    q = (np.asarray(ideal_px, float) if ordered
+         else _assigned(est, np.asarray(ideal_px, float), camera, holder))
+    if np.isfinite(q).all(axis=1).sum() < 6:
+        return PoseEstimate.failure(name, "fewer than 6 corners seen: no radius fit",
+                                    info=est.info)
+    dof0 = Pose(est.R_cam_holder, est.t_cam_holder_mm).dof
+    # the edge's shape (a new holder's break is a fillet or a chamfer): the one whose radius
+    # scan fits the corners better (the scan's trimmed cost, one noise scale for both); the
+    # full fit only for that one
+    R0 = rotation_from_euler_deg(*dof0[:3])
+    tables = [OffsetTable(R0, dof0[3:], camera.K, holder, replace(look, shape=sh))
+              for sh in shapes]
+    cost = [min(c for _, c, _ in _scan_radius(dof0, q, t, holder, camera.K, prior,
+                                              SCAN_RADII_MM)[2]) for t in tables]
+    # the first shape (the fillet, the common break) unless another fits clearly better: a
+    # chamfer images at its foot, a depth offset the contour cannot tell from Z, so a chamfer
+    # chosen on a tie would throw away the depth of a sharp or filleted edge
+    k = int(np.argmin(cost))
+    if cost[k] > SHAPE_MARGIN * cost[0]:
+        k = 0
+    fit = fit_pose_radius(dof0, q, camera, holder, tables[k].look, prior, table=tables[k])
+    if not np.all(np.isfinite(fit.dof)):
+        return PoseEstimate.failure(name, "the radius fit diverged", info=est.info)
+    info = dict(est.info, edge_radius_mm=fit.radius_mm, radius_fit=fit,
+                edge_shape=fit.table.look.shape, shape_costs=dict(zip(shapes, cost)),
+                radius_iterations=fit.iterations, start_dof=dof0.tolist())
+    pose = Pose.from_euler(*fit.dof)
+    return PoseEstimate(method=name, R_cam_holder=pose.R, t_cam_holder_mm=pose.t_mm,
+                        residual_px=fit.rms_px, candidates=est.candidates,
+                        time_ms=(est.time_ms if math.isfinite(est.time_ms) else 0.0)
+                        + (time.perf_counter() - t0) * 1e3, info=info)
+
+
+def solve(points_px, camera: Camera, model: Holder) -> PoseEstimate:
+    """Registered method ``dm+r``: ``dm+`` (synthetic motion range) + :func:`refine_radius`."""
+    from .matching import solve_dm_plus
+
+    est = solve_dm_plus(points_px, camera, model)
+    ideal = camera.undistort_px(np.asarray(points_px, float))
+    return refine_radius(est, ideal, camera, model)
+
+
+# ---- Fisher information ---------------------------------------------------------------------
+def fisher_pose_radius(pose: Pose, camera: Camera, holder: Holder, radius_mm: float,
+                       sigma_px: float, look: EdgeLook = EdgeLook()) -> np.ndarray:
+    """(7, 7) Fisher information of (DOFs, r) from the 20 corners with independent Gaussian
+    noise of ``sigma_px`` per coordinate (PROTOCOL.md's noise model), without prior."""
+    table = OffsetTable(pose.R, pose.t_mm, camera.K, holder, look)
+    _, J, _ = _model(pose.dof, radius_mm, table, holder, camera.K)
+    return J.T @ J / sigma_px ** 2
+
+
+def crlb_pose_radius(pose: Pose, camera: Camera, holder: Holder, radius_mm: float,
+                     sigma_px: float, look: EdgeLook = EdgeLook(),
+                     prior: RadiusPrior | None = None) -> dict:
+    """The bound on the std of the DOFs with the radius free and known, and the radius's
+    bound and correlation with each DOF.
+
+    Returns
+    -------
+    dict: ``std_free`` (7,) (DOFs then r), ``std_known`` (6,), ``corr_r`` (6,) correlation of
+    r with each DOF, ``std_per_family`` (8,) with one radius per edge direction (without
+    prior), ``fisher`` (7, 7).
+    """
+    F = fisher_pose_radius(pose, camera, holder, radius_mm, sigma_px, look)
+    if prior is not None:  # the prior's information on r (a Bayesian bound)
+        F[6, 6] += 1.0 / prior.std_mm ** 2
+    C = np.linalg.inv(F)
+    std_free = np.sqrt(np.diag(C))
+    std_known = np.sqrt(np.diag(np.linalg.inv(F[:6, :6])))
+    corr = C[6, :6] / (std_free[6] * std_free[:6])
+    # one radius per edge direction: split the r column by the family of each edge end
+    table = OffsetTable(pose.R, pose.t_mm, camera.K, holder, look)
+    _, J, P = _model(pose.dof, radius_mm, table, holder, camera.K)
+    R = pose.R
+    slope = table(radius_mm)[1]
+    fam = holder.edge_direction_index                                    # per edge
+    fam_end = np.stack([np.roll(fam, 1), fam], axis=1)                   # (N, 2)
+    Jt = J[:, 3:6].reshape(-1, 2, 3)
+    cols = []
+    for f in (0, 1):
+        sl = np.where(fam_end == f, slope, 0.0)
+        dP = np.einsum("nk,nkj->nj", sl, table.view.outward)
+        dX = np.column_stack([dP, np.zeros(len(dP))]) @ R.T
+        cols.append(np.einsum("nij,nj->ni", Jt, dX).reshape(-1))
+    J8 = np.column_stack([J[:, :6]] + cols)
+    C8 = np.linalg.inv(J8.T @ J8 / sigma_px ** 2)
+    return {"std_free": std_free, "std_known": std_known, "corr_r": corr,
+            "std_per_family": np.sqrt(np.diag(C8)), "fisher": F}
+
+
+def per_edge_jacobian(fit: RadiusFit, camera: Camera, holder: Holder) -> np.ndarray:
+    """(2N, N) d model pixels / d (offset of each edge, mm) at the fit (both of its ends)."""
+    R = rotation_from_euler_deg(*fit.dof[:3])
+    D = corner_offset_jacobian(fit.table.view.outward)                   # (N, 3, N)
+    Jt = fit.jacobian[:, 3:6].reshape(-1, 2, 3)
+    return np.einsum("nij,jk,nkm->nim", Jt, R, D).reshape(-1, D.shape[2])
