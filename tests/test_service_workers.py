@@ -8,8 +8,13 @@ import time
 import pytest
 
 from cutterpose.errors import InputError
-from cutterpose.service.workers import (DeadlineExceededError, JobError, QueueFullError,
-                                        WorkerCrashedError, WorkerPool)
+from cutterpose.service.workers import (
+    DeadlineExceededError,
+    JobError,
+    QueueFullError,
+    WorkerCrashedError,
+    WorkerPool,
+)
 
 
 def _init(tag):
