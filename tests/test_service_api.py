@@ -19,7 +19,7 @@ from cutterpose.service.loadtest import write_cell
 from cutterpose.service.store import Store
 
 with warnings.catch_warnings():  # starlette's notice about httpx 2, not ours to act on
-    warnings.simplefilter("ignore", DeprecationWarning)
+    warnings.simplefilter("ignore")
     from starlette.testclient import TestClient
 
 TOKEN = "test-token-0123456789"
@@ -264,7 +264,8 @@ def test_health_ready_metrics(service):
     assert ready["cell"]["image_size_px"] == [1028, 752]
     _post(client, b"", "image/png")
     text = client.get("/metrics", headers=AUTH).text
-    for name in ("cutterpose_http_requests_total", "cutterpose_refusals_total{reason=\"empty_body\"}",
+    for name in ("cutterpose_http_requests_total",
+                 "cutterpose_refusals_total{reason=\"empty_body\"}",
                  "cutterpose_http_request_duration_seconds_bucket", "cutterpose_queue_depth",
                  "cutterpose_workers_ready 1.0", "cutterpose_measure_duration_seconds_count"):
         assert name in text, name
