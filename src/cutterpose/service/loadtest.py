@@ -114,6 +114,7 @@ class ServerProcess:
 
         env = dict(os.environ)
         env.pop("CUTTERPOSE_DATA_DIR", None)
+        env.pop("CUTTERPOSE_TOKEN", None)  # else it would win over the cell's token file
         if self.token is not None:
             env["CUTTERPOSE_TOKEN"] = self.token
         cmd = [sys.executable, "-m", "cutterpose.cli", "serve", "--config", str(self.cell),
