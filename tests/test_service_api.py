@@ -332,3 +332,17 @@ def test_records_export_csv_and_json(service, tmp_path):
     r = runner.invoke(app, ["records", "export", "--data-dir", str(cell.service.data_dir),
                             "--since", "last tuesday"])
     assert r.exit_code != 0 and "ISO 8601" in r.output
+
+
+def test_deadline_is_504_and_the_service_goes_on(tmp_path, service):
+    """A deadline shorter than a measurement: 504, nothing stored, the worker replaced."""
+    _, _, img = service
+    cell = load_cell(write_cell(tmp_path, factor=4, workers=1, deadline_s=0.02),
+                     env={"CUTTERPOSE_TOKEN": TOKEN})
+    with TestClient(create_app(cell)) as client:
+        assert client.app.state.pool.wait_ready(60)
+        r = _post(client, _png(img))
+        assert r.status_code == 504 and r.json()["error"] == "deadline_exceeded"
+        assert _count(client) == 0
+        assert client.app.state.pool.wait_ready(60)
+        assert client.get("/ready").json()["ready"]

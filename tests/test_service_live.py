@@ -87,6 +87,27 @@ def test_client_round_trip(server, images, tmp_path):
     assert e.value.status == 401
 
 
+def _measured(url) -> float:
+    text = httpx.get(url + "/metrics", headers=AUTH).text
+    return float(next(line.split()[1] for line in text.splitlines()
+                      if line.startswith("cutterpose_measure_duration_seconds_count")))
+
+
+def test_concurrent_repeats_of_one_request_measure_once(server, images):
+    """A client retrying while its first try is still being measured gets the same answer,
+    and the picture is measured and stored once."""
+    m0 = _measured(server.url)
+    with ThreadPoolExecutor(4) as ex:
+        rs = list(ex.map(lambda _: _post(server.url, images[1], request_id="same-1"), range(4)))
+    assert [r.status_code for r in rs] == [200] * 4
+    assert all(r.json() == rs[0].json() for r in rs)
+    assert _measured(server.url) == m0 + 1
+    con = sqlite3.connect(server.cell.parent / "data" / DB_NAME)
+    n = con.execute("SELECT COUNT(*) FROM measurements WHERE request_id = 'same-1'").fetchone()
+    con.close()
+    assert n[0] == 1
+
+
 def _property_run(op, mode, checks, statuses):
     @settings(max_examples=8, deadline=None, derandomize=True, database=None,
               suppress_health_check=list(HealthCheck))

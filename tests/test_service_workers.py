@@ -119,3 +119,26 @@ def test_an_idle_worker_that_dies_is_replaced(pool):
                                        or not pool.ready):
         time.sleep(0.05)
     assert pool.ready and pid not in {w["pid"] for w in pool.workers()}
+
+
+def test_deadline_spent_waiting_refuses_or_answers_without_killing():
+    """One worker: a job that cannot start before its deadline is refused at once; a job whose
+    deadline passes because it waited is answered 'deadline' but its worker is not killed."""
+    p = WorkerPool(1, 5, _init, ("x",)).start()
+    try:
+        assert p.wait_ready(60)
+        p.submit(_sleep, 0.4, deadline_s=30).result(20)       # the pool learns a job's time
+        b = p.submit(_sleep, 1.0, deadline_s=30)
+        _busy_pid(p)
+        with pytest.raises(QueueFullError, match="expected wait"):
+            p.submit(_sleep, 0.0, deadline_s=0.3)             # would wait ~0.4 s: hopeless
+        d = p.submit(_sleep, 1.2, deadline_s=1.6)             # waits ~1 s, then runs 1.2 s
+        with pytest.raises(DeadlineExceededError):
+            d.result(20)
+        assert b.result(20)[0] == "x"
+        pid = p.workers()[0]["pid"]
+        time.sleep(1.2)                                       # d finishes within its run limit
+        assert p.restarts == 0 and p.workers()[0]["pid"] == pid
+        assert p.submit(_sleep, 0.0, deadline_s=30).result(20)[1] == pid
+    finally:
+        p.close()

@@ -7,8 +7,12 @@ same (``TerminatedWorkerError``) before respawning; :class:`multiprocessing.pool
 dead worker but never answers its job (the caller waits forever). None can stop one job at its
 deadline. Here each worker is a process with its own pipe, driven by one thread in the parent,
 so the parent knows which job each pid runs: a dead worker fails only that job
-(:class:`WorkerCrashedError`), a job past its deadline kills only its worker
-(:class:`DeadlineExceededError`), and the worker is replaced in both cases.
+(:class:`WorkerCrashedError`) and is replaced; a job past its deadline is answered at once
+(:class:`DeadlineExceededError`) and its worker killed and replaced only if the job itself runs
+longer than a whole deadline (stuck), so time lost in the queue never costs a worker's work. A
+job that could not even start before its deadline (expected wait from the recent job times) is
+refused at submission like a full queue (:class:`QueueFullError`), which keeps an overloaded
+pool from spending its time on answers nobody will receive.
 
 Protocol on a worker's pipe (pickled tuples): the worker sends ``("ready", pid)`` after its
 initializer, then answers each ``(fn, args)`` with ``("ok", result)``, ``("error", (type name,
@@ -46,7 +50,8 @@ class PoolError(CutterposeError):
 
 
 class QueueFullError(PoolError):
-    """Every worker is busy and the queue is full; ``retry_after_s`` estimates when to retry."""
+    """Every worker is busy and the queue is full, or the expected wait would pass the job's
+    deadline; ``retry_after_s`` estimates when to retry."""
 
     def __init__(self, message: str, retry_after_s: float):
         super().__init__(message)
@@ -54,8 +59,8 @@ class QueueFullError(PoolError):
 
 
 class DeadlineExceededError(PoolError):
-    """The job's deadline passed (waiting in the queue or running; a running job's worker is
-    killed and replaced)."""
+    """The job's deadline passed (waiting in the queue or running; a job running longer than a
+    whole deadline has its worker killed and replaced)."""
 
 
 class WorkerCrashedError(PoolError):
@@ -113,6 +118,7 @@ def _worker_main(conn, initializer, initargs) -> None:
 class _Job:
     fn: object
     args: tuple
+    deadline_s: float
     deadline: float
     future: Future = field(default_factory=Future)
     pid: int | None = None
@@ -132,6 +138,7 @@ class _Slot:
         self.busy_since: float | None = None
         self.restarts = 0
         self.last_error = ""
+        self.last_exitcode = None
         self.thread = threading.Thread(target=self._run, name=f"cutterpose-worker-{index}",
                                        daemon=True)
 
@@ -245,23 +252,25 @@ class _Slot:
                 return
             self.conn.send((job.fn, job.args))
         job.pid = self.pid
-        self.busy_since = time.monotonic()
-        t0 = self.busy_since
+        self.busy_since = t0 = time.monotonic()
+        pool = self.pool
         try:
-            ready = wait([self.conn, self.proc.sentinel],
-                         timeout=max(job.deadline - time.monotonic(), 0.0))
-            if self.conn in ready:
-                try:
-                    kind, value = self.conn.recv()
-                except (EOFError, OSError):
-                    kind, value = "crashed", None
-            elif ready:
-                kind, value = "crashed", None
-            else:
-                kind, value = "timeout", None
+            kind, value = self._reply(job.deadline)
+            if kind == "timeout":
+                # answer now; the worker may finish (its result is dropped): killing it at the
+                # request's deadline would waste its work whenever the queue wait, not the job,
+                # used up the time. Only a job running longer than a whole deadline is stuck.
+                job.future.set_exception(DeadlineExceededError(
+                    f"no answer within the deadline of {job.deadline_s:g} s"))
+                pool.timeouts += 1
+                kind, value = self._reply(t0 + job.deadline_s)
+                if kind == "timeout":
+                    self._replace()  # stuck: kill it
+                elif kind == "crashed":
+                    self._crashed()
+                return
         finally:
             self.busy_since = None
-        pool = self.pool
         if kind == "ok":
             pool._record_service_time(time.monotonic() - t0)
             job.future.set_result(value)
@@ -269,27 +278,40 @@ class _Slot:
             job.future.set_exception(JobError(value[0], value[1]))
         elif kind == "internal":
             job.future.set_exception(JobError("internal", value, internal=True))
-        elif kind == "timeout":
-            pid = self.pid
-            self._reap()  # kills it: a stuck job must not hold a worker
-            self.restarts += 1
-            pool.timeouts += 1
-            job.future.set_exception(DeadlineExceededError(
-                f"the measurement did not finish within the deadline (worker {pid} stopped)"))
-            self._ensure()
         else:
-            pid = self.pid
-            self.proc.join(5)
-            code = self.proc.exitcode
-            self._reap()
-            self.restarts += 1
-            pool.crashes += 1
-            how = (f"killed by signal {-code}" if isinstance(code, int) and code < 0
-                   else f"exit code {code}")
+            pid, how = self._crashed()
             job.future.set_exception(WorkerCrashedError(
                 f"worker process {pid} died during the request ({how}); it was replaced",
-                pid, code))
-            self._ensure()
+                pid, self.last_exitcode))
+
+    def _reply(self, until: float):
+        """The worker's reply, ``("crashed", None)`` if it died, ``("timeout", None)`` if
+        nothing came by ``until`` (monotonic)."""
+        ready = wait([self.conn, self.proc.sentinel],
+                     timeout=max(until - time.monotonic(), 0.0))
+        if self.conn in ready:
+            try:
+                return self.conn.recv()
+            except (EOFError, OSError):
+                return "crashed", None
+        return ("crashed", None) if ready else ("timeout", None)
+
+    def _replace(self) -> None:
+        """Kill the worker and start another."""
+        self._reap()
+        self.restarts += 1
+        self._ensure()
+
+    def _crashed(self) -> tuple[int, str]:
+        """Reap a dead worker, start another; its pid and how it ended."""
+        pid = self.pid
+        self.proc.join(5)
+        code = self.last_exitcode = self.proc.exitcode
+        self.pool.crashes += 1
+        self._replace()
+        how = (f"killed by signal {-code}" if isinstance(code, int) and code < 0
+               else f"exit code {code}")
+        return pid, how
 
 
 class WorkerPool:
@@ -408,14 +430,20 @@ class WorkerPool:
         if self.closing:
             raise PoolClosedError("the service is shutting down")
         with self._lock:
-            if self._pending >= self.n_workers + self.queue_size:
+            ahead = self._pending - self.n_workers + 1   # jobs that would wait before it
+            wait_s = max(ahead, 0) * self._service_s / self.n_workers
+            full = self._pending >= self.n_workers + self.queue_size
+            # a job that cannot start before its deadline would only waste a worker's time
+            hopeless = self._service_s > 0 and ahead > 0 and wait_s + self._service_s > deadline_s
+            if full or hopeless:
                 self.refused += 1
-                waiting = self._pending - self.n_workers + 1
-                est = waiting * max(self._service_s, 0.05) / self.n_workers
-                raise QueueFullError(f"all {self.n_workers} workers busy and {self.queue_size} "
-                                "requests waiting", retry_after_s=max(1.0, math.ceil(est)))
+                why = (f"all {self.n_workers} workers busy and {self.queue_size} requests "
+                       "waiting" if full else f"expected wait {wait_s:.1f} s would pass the "
+                       f"deadline of {deadline_s:g} s")
+                est = max(ahead, 1) * max(self._service_s, 0.05) / self.n_workers
+                raise QueueFullError(why, retry_after_s=max(1.0, math.ceil(est)))
             self._pending += 1
-        job = _Job(fn, args, time.monotonic() + deadline_s)
+        job = _Job(fn, args, deadline_s, time.monotonic() + deadline_s)
         self._queue.put(job)
         return job.future
 
