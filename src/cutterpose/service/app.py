@@ -1,7 +1,8 @@
 """The HTTP API of ``cutterpose serve`` (FastAPI): measurements in, records out.
 
 A measurement request is checked in this order, and the first failure answers: bearer token
-(401: nothing is read, measured or stored), content type (415), size while the body streams in
+(401: nothing is read, measured or stored), content type (415), room in the queue (503 with
+``Retry-After``, before the body is read), size while the body streams in
 (413 as soon as it passes the limit, so a 200 MB body is never held), empty body (400),
 parameters and flange pose (422), the image's format and truncation (422), the client's request
 id (an earlier answer is replayed, 409 if the request differs); then the image is queued for a
@@ -226,7 +227,12 @@ def create_app(cell: Cell, pool: WorkerPool | None = None) -> FastAPI:
             raise ApiError(400, "empty_body", "empty body: send the image")
         return bytes(buf)
 
-    async def measurement_input(request: Request, q: MeasureQuery):
+    def queue_full(e: QueueFullError) -> ApiError:
+        return ApiError(503, "queue_full", f"busy: {e}; retry after {e.retry_after_s:.0f} s",
+                        headers={"Retry-After": str(int(e.retry_after_s))})
+
+    async def measurement_input(request: Request, q: MeasureQuery, store: Store,
+                                pool: WorkerPool):
         """(data, format, (w, h) or None, flange row or None, request id, holder)."""
         ctype = request.headers.get("content-type", "").split(";")[0].strip().lower()
         if ctype != "application/json" and ctype not in FORMATS:
@@ -234,6 +240,17 @@ def create_app(cell: Cell, pool: WorkerPool | None = None) -> FastAPI:
                            f"content type {ctype or '(none)'!r} not accepted: send image/png, "
                            "image/tiff, image/jpeg, application/octet-stream (raw 8-bit, with "
                            "width and height) or application/json")
+        # busy: refuse before the body is read (a client sending "Expect: 100-continue", as
+        # curl does for large bodies, then never uploads it), unless this is a repeat of an
+        # answered request, which the store answers without a worker
+        if q.request_id is None or await asyncio.to_thread(store.row, q.request_id) is None:
+            try:
+                pool.admit(settings.deadline_s)
+            except QueueFullError as e:
+                raise queue_full(e) from None
+            except PoolClosedError as e:
+                raise ApiError(503, "shutting_down", str(e), headers={"Retry-After": "5"}
+                               ) from None
         body = await read_body(request)
         if ctype == "application/json":
             if any(v is not None for v in q.model_dump().values()):
@@ -292,7 +309,7 @@ def create_app(cell: Cell, pool: WorkerPool | None = None) -> FastAPI:
     async def post_measurement(request: Request, q: Annotated[MeasureQuery, Query()],
                                store: StoreDep, pool: PoolDep):
         """Measure the holder's pose in one image; the answer is stored before it is sent."""
-        data, fmt, size, row, rid, holder = await measurement_input(request, q)
+        data, fmt, size, row, rid, holder = await measurement_input(request, q, store, pool)
         t0 = time.perf_counter()
         sha = hashlib.sha256(data).hexdigest()
         flange_text = json.dumps(row) if row is not None else None
@@ -337,8 +354,7 @@ def create_app(cell: Cell, pool: WorkerPool | None = None) -> FastAPI:
             fut = pool.submit(measure_job, data, fmt, size, holder, row,
                               deadline_s=settings.deadline_s)
         except QueueFullError as e:
-            raise ApiError(503, "queue_full", f"busy: {e}; retry after {e.retry_after_s:.0f} s",
-                           headers={"Retry-After": str(int(e.retry_after_s))}) from None
+            raise queue_full(e) from None
         except PoolClosedError as e:
             raise ApiError(503, "shutting_down", str(e), headers={"Retry-After": "5"}) from None
         try:
@@ -446,8 +462,7 @@ def create_app(cell: Cell, pool: WorkerPool | None = None) -> FastAPI:
             fut = pool.submit(overlay_job, str(path), fmt, size, holder,
                               deadline_s=settings.deadline_s)
         except QueueFullError as e:
-            raise ApiError(503, "queue_full", str(e),
-                           headers={"Retry-After": str(int(e.retry_after_s))}) from None
+            raise queue_full(e) from None
         try:
             png = await asyncio.wrap_future(fut)
         except DeadlineExceededError as e:

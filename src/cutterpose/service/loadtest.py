@@ -247,7 +247,7 @@ def run_load(url: str, token: str, images: list[bytes], n_clients: int = 100,
                         break
                     if r.status_code == 503:
                         res.refusals_503 += 1
-                        await asyncio.sleep(min(float(r.headers.get("Retry-After", 1)), 5.0))
+                        await asyncio.sleep(min(float(r.headers.get("Retry-After", 1)), 60.0))
                         continue
                     if r.status_code == 200:
                         now = time.perf_counter()

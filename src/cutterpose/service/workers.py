@@ -10,8 +10,8 @@ so the parent knows which job each pid runs: a dead worker fails only that job
 (:class:`WorkerCrashedError`) and is replaced; a job past its deadline is answered at once
 (:class:`DeadlineExceededError`) and its worker killed and replaced only if the job itself runs
 longer than a whole deadline (stuck), so time lost in the queue never costs a worker's work. A
-job that could not even start before its deadline (expected wait from the recent job times) is
-refused at submission like a full queue (:class:`QueueFullError`), which keeps an overloaded
+job expected to finish after half its deadline (from the recent job times and the jobs ahead)
+is refused at submission like a full queue (:class:`QueueFullError`), which keeps an overloaded
 pool from spending its time on answers nobody will receive.
 
 Protocol on a worker's pipe (pickled tuples): the worker sends ``("ready", pid)`` after its
@@ -427,25 +427,41 @@ class WorkerPool:
         PoolClosedError
             The pool is shutting down.
         """
-        if self.closing:
-            raise PoolClosedError("the service is shutting down")
         with self._lock:
-            ahead = self._pending - self.n_workers + 1   # jobs that would wait before it
-            wait_s = max(ahead, 0) * self._service_s / self.n_workers
-            full = self._pending >= self.n_workers + self.queue_size
-            # a job that cannot start before its deadline would only waste a worker's time
-            hopeless = self._service_s > 0 and ahead > 0 and wait_s + self._service_s > deadline_s
-            if full or hopeless:
+            refusal = self._refusal(deadline_s)
+            if refusal is not None:
                 self.refused += 1
-                why = (f"all {self.n_workers} workers busy and {self.queue_size} requests "
-                       "waiting" if full else f"expected wait {wait_s:.1f} s would pass the "
-                       f"deadline of {deadline_s:g} s")
-                est = max(ahead, 1) * max(self._service_s, 0.05) / self.n_workers
-                raise QueueFullError(why, retry_after_s=max(1.0, math.ceil(est)))
+                raise refusal
             self._pending += 1
         job = _Job(fn, args, deadline_s, time.monotonic() + deadline_s)
         self._queue.put(job)
         return job.future
+
+    def admit(self, deadline_s: float) -> None:
+        """Raise what :meth:`submit` would raise now, without queueing anything (to refuse a
+        request before its body is read)."""
+        with self._lock:
+            refusal = self._refusal(deadline_s)
+        if refusal is not None:
+            raise refusal
+
+    def _refusal(self, deadline_s: float) -> PoolError | None:
+        if self.closing:
+            return PoolClosedError("the service is shutting down")
+        ahead = self._pending - self.n_workers + 1   # jobs that would wait before this one
+        wait_s = max(ahead, 0) * self._service_s / self.n_workers
+        full = self._pending >= self.n_workers + self.queue_size
+        # a job expected to finish late would only spend a worker's time on an answer nobody
+        # receives; half the deadline leaves room for the estimate's error under varying load
+        hopeless = (self._service_s > 0 and ahead > 0
+                    and wait_s + self._service_s > 0.5 * deadline_s)
+        if not (full or hopeless):
+            return None
+        why = (f"all {self.n_workers} workers busy and {self.queue_size} requests waiting"
+               if full else f"expected wait {wait_s:.1f} s: the answer would come too close "
+               f"to the deadline of {deadline_s:g} s")
+        est = max(ahead, 1) * max(self._service_s, 0.05) / self.n_workers
+        return QueueFullError(why, retry_after_s=max(1.0, math.ceil(est)))
 
     def _done(self) -> None:
         with self._lock:
