@@ -43,13 +43,14 @@ def easy():
 def test_easy_corners_subpixel_and_refinement_removes_threshold_bias(easy):
     cam, r = easy
     hol = default_holder()
-    f = detect_features(r.image, cam, hol)
+    f = detect_features(r.image, cam, hol, FeatureParams.for_camera(cam, chain="paper"))
     assert f.corners_px.shape == (20, 2)
     assert len(f.segments) == 20
     rms = corner_rms(f.corners_px, r.corners_px)
     # the target is 0.3 px on full-size easy images; a 4x reduced image is no easier
     assert rms < 0.3 * SCALE * 4 / 2
-    paper = detect_features(r.image, cam, hol, FeatureParams.for_camera(cam, refine=False))
+    paper = detect_features(r.image, cam, hol, FeatureParams.for_camera(cam, chain="paper",
+                                                                        refine=False))
     rms_paper = corner_rms(paper.corners_px, r.corners_px)
     assert rms < 0.6 * rms_paper
     assert set(f.timings_ms) >= {"check", "roi", "refine"}
@@ -144,8 +145,9 @@ def test_model_fallback_on_worn_edges():
     hol = default_holder()
     r = render_holder(Pose.from_euler(3, -4, 5, 10, -8, 610), cam, hol, "worn", seed=1)
     with pytest.raises(FeatureError, match="segments"):
-        detect_features(r.image, cam, hol, FeatureParams.for_camera(cam, model_fallback="none"))
-    f = detect_features(r.image, cam, hol)
+        detect_features(r.image, cam, hol, FeatureParams.for_camera(cam, chain="paper",
+                                                                    model_fallback="none"))
+    f = detect_features(r.image, cam, hol, FeatureParams.for_camera(cam, chain="paper"))
     assert f.segmentation == "model"
     assert f.corners_px.shape == (20, 2)
     # worn edges move the visible edge off the geometric one (renderer: a 4 mm band)

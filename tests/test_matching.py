@@ -169,3 +169,18 @@ def test_dm_and_dm_plus_through_lens_distortion():
     assert geodesic_deg(pose.R, dmp.R_cam_holder) < 0.1
     assert np.abs(dmp.t_cam_holder_mm - pose.t_mm).max() < 0.4   # 0.9 mm if distortion ignored
     assert dmp.residual_px < 0.4
+
+
+def test_dm_paper_uses_the_papers_initial_pose():
+    """``dm-paper`` is the paper as written: its initial pose (image-plane vanishing points)
+    then distance matching; on clean corners it lands on the 0.1 grid like ``dm``."""
+    from cutterpose.methods import get_method
+
+    cam = default_camera("table1")
+    truth = Pose.from_euler(3, -5, 2, 10, -8, 610)
+    px = cam.project(truth.apply(HOLDER.points_holder_mm))
+    est = get_method("dm-paper").solve(px, cam, HOLDER)
+    assert est and est.method == "dm-paper"
+    assert np.all(np.abs(est.pose.dof - truth.dof) < 0.2)
+    paper_init = get_method("initial-paper").solve(px, cam, HOLDER)
+    assert np.allclose(est.info["initial_dof"], paper_init.pose.dof)

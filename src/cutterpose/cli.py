@@ -57,6 +57,9 @@ def experiment_synthetic(
     trials_file: str = typer.Option(None, "--trials-file", help="Run a PROTOCOL trial file "
                                     "(.npz) instead of drawing trials."),
     workers: int = typer.Option(1, min=1, help="Worker processes (results are identical)."),
+    scheduler: str = typer.Option(None, "--scheduler", help="Run on the Dask distributed "
+                                  "cluster at this address (tcp://host:8786) instead of local "
+                                  "processes; needs cutterpose[cluster]."),
     seed: int = typer.Option(0, help="Base seed of the trial generator."),
     progress: bool = typer.Option(True, help="Show a progress bar on stderr."),
 ):
@@ -66,7 +69,7 @@ def experiment_synthetic(
 
     meths = parse_methods(methods)
     res = run_synthetic(meths, parse_sigmas(sigmas), trials, out, seed=seed, workers=workers,
-                        trials_file=trials_file, show_progress=progress)
+                        trials_file=trials_file, show_progress=progress, scheduler=scheduler)
     typer.echo((res.out_dir / "summary.md").read_text())
     log(f"wrote {res.out_dir}/trials.csv, summary.md, summary.json, fig5.png")
 
@@ -117,29 +120,64 @@ def render_cmd(
     holder: str = typer.Option(None, help="Holder JSON file (default: the bundled holder)."),
     pocket_depth: float = typer.Option(None, help="Pocket depth in mm (preset: 80)."),
     truth: bool = typer.Option(True, help="Also write <stem>.truth.json beside the image."),
+    flange_pose: str = typer.Option(None, "--flange-pose", help="Robot cell: the true "
+                                    "T_base_flange (pose file row or x_mm,y_mm,z_mm,qx,qy,qz,"
+                                    "qw); needs --handeye and --holder-base-pose, replaces "
+                                    "--pose."),
+    handeye: str = typer.Option(None, "--handeye", help="Robot cell: handeye.json with the "
+                                "true T_flange_cam."),
+    holder_base_pose: str = typer.Option(None, "--holder-base-pose", help="Robot cell: the "
+                                         "holder in the base frame, x_mm,y_mm,z_mm,qx,qy,qz,"
+                                         "qw or a one-row pose file."),
 ):
-    """Render one realistic image of the holder at a pose."""
+    """Render one realistic image of the holder at a pose (camera frame), or as the camera on
+    a robot's flange sees a holder at a known base-frame pose."""
     from .errors import InputError
     from .geometry.holder import load_holder
     from .geometry.pose import Pose
     from .render.analytic import preset as get_preset
     from .render.analytic import render_holder, save_rendered
 
-    try:
-        dof = [float(x) for x in pose.split(",")]
-    except ValueError:
-        dof = []
-    if len(dof) != 6:
-        raise InputError(f"--pose needs six comma-separated numbers alpha,beta,gamma,X,Y,Z; "
-                         f"got {pose!r}")
+    cell = (flange_pose, handeye, holder_base_pose)
+    if any(v is not None for v in cell):
+        from .calibration.handeye import load_handeye
+        from .robot.poses import load_flange_pose, read_poses
+
+        if any(v is None for v in cell):
+            raise InputError("a robot-cell render needs --flange-pose, --handeye and "
+                             "--holder-base-pose together")
+        X = load_handeye(handeye).T_flange_cam
+        hp = holder_base_pose
+        T_bh = (parse_row_or_file(hp, read_poses, "holder") if hp.lower().endswith(
+            (".csv", ".json")) else load_flange_pose(hp).with_frames("base", "holder"))
+        T_ch = X.inverse() @ load_flange_pose(flange_pose).inverse() @ T_bh
+    else:
+        try:
+            dof = [float(x) for x in pose.split(",")]
+        except ValueError:
+            dof = []
+        if len(dof) != 6:
+            raise InputError(f"--pose needs six comma-separated numbers alpha,beta,gamma,X,Y,"
+                             f"Z; got {pose!r}")
+        T_ch = Pose.from_euler(*dof)
     cam = _render_camera(camera)
     settings = get_preset(preset)
     if pocket_depth is not None:
         settings = settings.with_(pocket_depth_mm=pocket_depth)
-    r = render_holder(Pose.from_euler(*dof), cam, load_holder(holder) if holder else None,
-                      settings, seed=seed)
+    r = render_holder(T_ch.with_frames("cam", "holder"), cam,
+                      load_holder(holder) if holder else None, settings, seed=seed)
     path = save_rendered(r, out, cam, truth=truth)
     typer.echo(f"wrote {path}" + (f" and {path.with_suffix('.truth.json')}" if truth else ""))
+
+
+def parse_row_or_file(path: str, read_poses, frame: str):
+    """The single pose of a one-row pose file, as ``T_base_<frame>``."""
+    from .errors import InputError
+
+    poses = read_poses(path, to_frame="base", from_frame=frame)
+    if len(poses) != 1:
+        raise InputError(f"{path}: expected one pose, got {len(poses)}")
+    return poses[0]
 
 
 @app.command("render-set")
@@ -152,6 +190,9 @@ def render_set_cmd(
     preset: str = typer.Option(None, help="Use this preset for every image (default: a mix "
                                "of easy, dim, worn, occluded, blurred, hard)."),
     workers: int = typer.Option(1, min=1, help="Worker processes (the set does not change)."),
+    scheduler: str = typer.Option(None, "--scheduler", help="Run on the Dask distributed "
+                                  "cluster at this address (tcp://host:8786) instead of local "
+                                  "processes; needs cutterpose[cluster]."),
 ):
     """Render an image set with its truth.json (PROTOCOL.md, exchange formats)."""
     from rich.progress import Progress
@@ -166,7 +207,7 @@ def render_set_cmd(
     cam = _render_camera(camera)
     with Progress(transient=True, console=None) as bar:
         task = bar.add_task("rendering", total=count)
-        path = render_set(count, seed, out, cam, mix=mix, workers=workers,
+        path = render_set(count, seed, out, cam, mix=mix, workers=workers, scheduler=scheduler,
                           progress=lambda done, n: bar.update(task, completed=done))
     typer.echo(f"wrote {count} images and {path}")
 
@@ -174,24 +215,73 @@ def render_set_cmd(
 @app.command("measure")
 @friendly
 def measure_cmd(
-    image: str = typer.Argument(..., help="Image of the holder (PNG, JPEG, TIFF...)."),
+    image: str = typer.Argument(..., help="Image of the holder (PNG, JPEG, TIFF...), or a raw "
+                                "8-bit frame (.raw with a sidecar <file>.json, or --raw)."),
     camera: str = typer.Option(None, help="table1 (default), synthetic, or a camera file."),
+    raw: str = typer.Option(None, "--raw", help="Read IMAGE as a raw Mono8 frame of "
+                            "WIDTHxHEIGHT pixels (as a GigE camera delivers it; no decode)."),
     holder: str = typer.Option(None, help="Holder JSON file (default: the bundled holder)."),
     method: str = typer.Option("dm+", help="Pose method (cutterpose.methods)."),
     overlay: str = typer.Option(None, "--overlay", help="Write an overlay PNG here."),
     as_json: bool = typer.Option(False, "--json", help="One JSON object on stdout."),
+    chain: str = typer.Option("field", help="Image chain: field (gradient outline, robust "
+                              "lines; default) or paper (section 2.1: threshold 70, contour)."),
+    handeye: str = typer.Option(None, "--handeye", help="handeye.json: also answer in the "
+                                "robot's base frame (needs --flange-pose)."),
+    flange_pose: str = typer.Option(None, "--flange-pose", help="T_base_flange at the "
+                                    "picture: a one-row pose file or x_mm,y_mm,z_mm,qx,qy,qz,"
+                                    "qw inline."),
+    convention: str = typer.Option(None, help="Convention of a --flange-pose file that does "
+                                   "not state it."),
+    length_unit: str = typer.Option(None, help="mm or m, for a --flange-pose file."),
+    angle_unit: str = typer.Option(None, help="deg or rad, for a --flange-pose file."),
+    robot_accuracy_mm: float = typer.Option(0.05, help="Robot position error, mm per axis "
+                                            "(1 sigma)."),
+    robot_accuracy_deg: float = typer.Option(0.01, help="Robot angle error, deg per axis "
+                                             "(1 sigma)."),
+    position_tol_mm: float = typer.Option(1.0, help="Grasp tolerance on the 3-sigma "
+                                          "position bound, mm."),
+    angle_tol_deg: float = typer.Option(None, help="Grasp tolerance on the 3-sigma angle "
+                                        "bound, deg (default: position tolerance at the "
+                                        "17-inch cutter's 216 mm radius, 0.265 deg)."),
 ):
-    """Measure the holder's pose in one image (exit 3 when the pose is refused)."""
+    """Measure the holder's pose in one image (exit 3 when the pose is refused); with
+    --handeye and --flange-pose also in the robot's base frame with the grasp verdict (exit 4
+    on retake)."""
     import json as _json
+    import time
 
-    from .geometry.holder import load_holder
-    from .image import load_image
+    from .errors import InputError
+    from .frames import load_frame, parse_raw_size
+    from .geometry.holder import default_holder, load_holder
     from .pipeline import measure
 
     cam = _render_camera(camera)
     hol = load_holder(holder) if holder else None
-    img = load_image(image)
-    m = measure(img, cam, hol, method)
+    if (handeye is None) != (flange_pose is None):
+        raise InputError("the base frame needs both --handeye and --flange-pose")
+    robot = None
+    if handeye is not None:
+        from .robot import GraspTolerance, RobotAccuracy, load_flange_pose, load_handeye
+
+        robot = (load_handeye(handeye),
+                 load_flange_pose(flange_pose, convention, length_unit, angle_unit),
+                 RobotAccuracy(robot_accuracy_mm, robot_accuracy_deg),
+                 GraspTolerance(position_tol_mm, angle_deg=angle_tol_deg))
+    from .image import FeatureParams
+
+    if chain not in ("field", "paper"):
+        fail(f"--chain must be 'field' or 'paper', got {chain!r}")
+    t0 = time.perf_counter()
+    img = load_frame(image, cam, parse_raw_size(raw) if raw else None)
+    load_ms = (time.perf_counter() - t0) * 1e3
+    m = measure(img, cam, hol, method, params=FeatureParams.for_camera(cam, chain=chain))
+    m.timings_ms = {"load": load_ms} | m.timings_ms
+    if robot is not None:
+        from .robot import locate
+
+        m.robot = locate(m, robot[0], robot[1], robot[2], camera=cam,
+                         holder=hol or default_holder(), tolerance=robot[3])
     if overlay:
         from .geometry.holder import default_holder
         from .overlay import write_overlay
@@ -200,11 +290,36 @@ def measure_cmd(
         log(f"wrote {overlay}")
     if as_json:
         typer.echo(_json.dumps(m.to_dict()))
-    elif m.pose is not None:
-        typer.echo("\n".join(m.pose_lines()))
-        typer.echo("time: " + ", ".join(f"{k} {v:.0f} ms" for k, v in m.timings_ms.items()))
+    else:
+        if m.pose is not None:
+            typer.echo("\n".join(m.pose_lines()))
+            typer.echo("time: " + ", ".join(f"{k} {v:.0f} ms" for k, v in m.timings_ms.items()))
+        if m.robot is not None:
+            typer.echo("\n".join(_robot_lines(m.robot)))
     if not m.ok:
         fail(f"pose refused: {m.quality.reason}", code=3)
+    if m.robot is not None and not m.robot.grasp.ok:
+        fail(f"retake: {m.robot.grasp.reason} -- {m.robot.grasp.hint}", code=4)
+
+
+def _robot_lines(r) -> list[str]:
+    """The base-frame answer in a few lines."""
+    out = []
+    for name, pc in (("T_base_holder", r.T_base_holder), ("T_base_grasp", r.T_base_grasp)):
+        if pc is not None:
+            a, b, g = pc.pose.euler_deg
+            x, y, z = pc.pose.t_mm
+            out.append(f"{name}: X {x:9.2f}  Y {y:9.2f}  Z {z:9.2f} mm   alpha {a:8.3f}  beta "
+                       f"{b:8.3f}  gamma {g:8.3f} deg")
+    v = r.grasp
+    out.append(f"grasp verdict: {v.verdict.upper()}  (3-sigma {v.position_3sigma_mm:.3f} mm / "
+               f"{v.angle_3sigma_deg:.3f} deg; tolerance {v.tolerance.position_mm:g} mm / "
+               f"{v.tolerance.angle_limit_deg:.3f} deg)")
+    if v.reason:
+        out.append(f"  reason: {v.reason}")
+    if v.hint:
+        out.append(f"  hint: {v.hint}")
+    return out
 
 
 @experiment_app.command("images")
@@ -215,6 +330,9 @@ def experiment_images_cmd(
                                 help="Comma-separated methods."),
     out: str = typer.Option("results/images", help="Output folder."),
     workers: int = typer.Option(1, min=1, help="Worker processes."),
+    scheduler: str = typer.Option(None, "--scheduler", help="Run on the Dask distributed "
+                                  "cluster at this address (tcp://host:8786) instead of local "
+                                  "processes; the set must be at the same path on every worker."),
     limit: int = typer.Option(None, help="Only the first N images."),
     no_refine: bool = typer.Option(False, "--no-refine",
                                    help="The paper's lines only (no gradient refinement)."),
@@ -229,12 +347,159 @@ def experiment_images_cmd(
     names = [m.name for m in parse_methods(methods)]
     with Progress(transient=True) as bar:
         task = bar.add_task("images", total=None)
-        run_images(folder, names, out, workers=workers, limit=limit,
+        run_images(folder, names, out, workers=workers, limit=limit, scheduler=scheduler,
                    params=FeatureParams(refine=not no_refine),
                    progress=lambda done, n: bar.update(task, completed=done, total=n))
     typer.echo(f"wrote {out}/trials.csv, summary.md, corners.csv, failures.csv")
     typer.echo((__import__("pathlib").Path(out) / "summary.md").read_text())
 
+
+
+@experiment_app.command("field-table")
+@friendly
+def experiment_field_cmd(
+    sets: list[str] = typer.Argument(..., help="NAME=RESULTS_DIR of `experiment images`, "
+                                     "one per image set (e.g. sharp=results/sharp)."),
+    out: str = typer.Option("results/field", help="Output folder (field.md, field.json)."),
+):
+    """The field table: accepted/refused, bias, std, p95 errors and wrong accepted poses."""
+    from pathlib import Path
+
+    from .errors import InputError
+    from .experiments.field import write_field
+
+    pairs = {}
+    for s in sets:
+        name, sep, folder = s.partition("=")
+        if not sep or not name or not folder:
+            raise InputError(f"{s!r}: give each set as NAME=RESULTS_DIR")
+        pairs[name] = Path(folder)
+    write_field(pairs, out)
+    typer.echo((Path(out) / "field.md").read_text())
+
+
+# ---- section: track, render-sequence (issue 13) -------------------------------------------
+FRAME_SUFFIXES = (".png", ".tif", ".tiff", ".bmp", ".jpg", ".jpeg", ".pgm", ".raw", ".mono8")
+
+
+def _frames(source: str, raw_size):
+    """(name, frame) of a folder of frames (sorted names) or of a video file."""
+    from pathlib import Path
+
+    from .errors import InputError
+    from .frames import load_frame
+
+    p = Path(source)
+    if p.is_dir():
+        files = sorted(q for q in p.iterdir() if q.suffix.lower() in FRAME_SUFFIXES)
+        if not files:
+            raise InputError(f"{p}: no frames ({', '.join(FRAME_SUFFIXES)})")
+        for q in files:
+            yield q.name, load_frame(q, raw_size=raw_size)
+        return
+    if not p.is_file():
+        raise InputError(f"{p}: neither a folder of frames nor a video file")
+    import cv2
+
+    cap = cv2.VideoCapture(str(p))
+    if not cap.isOpened():
+        raise InputError(f"{p}: not a readable video")
+    k = 0
+    try:
+        while True:
+            ok, frame = cap.read()
+            if not ok:
+                break
+            yield f"{p.name}#{k}", frame
+            k += 1
+    finally:
+        cap.release()
+    if k == 0:
+        raise InputError(f"{p}: the video has no frames")
+
+
+@app.command("track")
+@friendly
+def track_cmd(
+    source: str = typer.Argument(..., help="Folder of frames (sorted by name) or a video."),
+    camera: str = typer.Option(None, help="table1 (default), synthetic, or a camera file."),
+    holder: str = typer.Option(None, help="Holder JSON file (default: the bundled holder)."),
+    method: str = typer.Option("dm+", help="Pose method of the full measurement."),
+    raw: str = typer.Option(None, "--raw", help="Frames are raw Mono8 files of WIDTHxHEIGHT."),
+    filter_: bool = typer.Option(False, "--filter", help="Also report a constant-velocity "
+                                 "filtered pose (beside the raw one)."),
+    json_lines: bool = typer.Option(False, "--json-lines", help="One JSON object per frame."),
+):
+    """Track the holder through a sequence: edges predicted from the previous pose, the full
+    measurement on the first frame and whenever tracking fails (said per frame)."""
+    import json as _json
+
+    import numpy as np
+
+    from .frames import parse_raw_size
+    from .geometry.holder import load_holder
+    from .tracking import Tracker
+
+    cam = _render_camera(camera)
+    tracker = Tracker(cam, load_holder(holder) if holder else None, method, filter=filter_)
+    size = parse_raw_size(raw) if raw else None
+    modes, times = {}, []
+    for name, frame in _frames(source, size):
+        r = tracker.update(frame)
+        modes[r.mode] = modes.get(r.mode, 0) + 1
+        if r.mode == "track":
+            times.append(r.timings_ms["total"])
+        if json_lines:
+            typer.echo(_json.dumps({"file": name} | r.to_dict()))
+        else:
+            pose = ("  ".join(f"{v:8.3f}" for v in r.pose.dof) if r.pose is not None
+                    else "no pose")
+            note = f"  ({r.fallback_reason})" if r.fallback_reason and r.frame else ""
+            typer.echo(f"{name:24s} {r.mode:5s} {pose}  {r.timings_ms['total']:6.1f} ms{note}")
+    med = f", tracking median {np.median(times):.1f} ms/frame" if times else ""
+    log(f"{sum(modes.values())} frames: {modes.get('track', 0)} tracked, "
+        f"{modes.get('full', 0)} full measurements (first + fall-backs), "
+        f"{modes.get('lost', 0)} lost{med}")
+
+
+@app.command("render-sequence")
+@friendly
+def render_sequence_cmd(
+    out: str = typer.Option(..., "--out", help="Output folder (frames and truth.json)."),
+    frames: int = typer.Option(60, min=2, help="Number of frames of the approach."),
+    z_start: float = typer.Option(900.0, help="Camera-holder distance at the first frame, mm."),
+    z_end: float = typer.Option(600.0, help="Distance at the last frame, mm."),
+    preset: str = typer.Option("easy", help="Render preset (easy, dim, worn, ...)."),
+    engine: str = typer.Option("analytic", help="Render engine (analytic; pbr when wired)."),
+    seed: int = typer.Option(0, help="Seed of the surface and the noise."),
+    camera: str = typer.Option(None, help="table1 (default), synthetic, or a camera file."),
+    drop: str = typer.Option("", help="Comma-separated frame indices to drop."),
+    jump_at: int = typer.Option(None, help="From this frame on, shift the holder by --jump-mm."),
+    jump_mm: str = typer.Option("30,0,0", help="The jump X,Y,Z in mm."),
+    workers: int = typer.Option(1, min=1, help="Worker processes."),
+    scheduler: str = typer.Option(None, "--scheduler", help="Dask scheduler address."),
+):
+    """Render an approach sequence: the camera moving from --z-start to --z-end mm."""
+    from rich.progress import Progress
+
+    from .errors import InputError
+    from .render.sequence import render_sequence
+
+    try:
+        dropped = tuple(int(x) for x in drop.split(",") if x.strip())
+        jump = tuple(float(x) for x in jump_mm.split(","))
+        assert len(jump) == 3
+    except (ValueError, AssertionError):
+        raise InputError(f"--drop must be integers and --jump-mm X,Y,Z; got {drop!r}, "
+                         f"{jump_mm!r}") from None
+    with Progress(transient=True) as bar:
+        task = bar.add_task("rendering", total=frames - len(dropped))
+        path = render_sequence(out, frames, z_start, z_end, _render_camera(camera),
+                               settings=preset, seed=seed, engine_name=engine, drop=dropped,
+                               jump_at=jump_at, jump_mm=jump, workers=workers,
+                               scheduler=scheduler,
+                               progress=lambda done, n: bar.update(task, completed=done))
+    typer.echo(f"wrote {frames - len(dropped)} frames and {path}")
 
 
 # ---- section: calibrate, render-plate, camera convert (issue 6) ---------------------------
@@ -272,8 +537,24 @@ def render_plate_cmd(
     spacing_mm: float = typer.Option(30.0, help="Circle spacing in mm."),
     diameter_mm: float = typer.Option(15.0, help="Circle diameter in mm."),
     distance_mm: str = typer.Option("400,700", help="Range of plate distances in mm."),
+    robot_cell: bool = typer.Option(False, "--robot-cell", help="Hand-eye mode: a simulated "
+                                    "robot cell (random camera mount, fixed plate) moves the "
+                                    "camera through COUNT stations; writes robot_poses.csv "
+                                    "(reported flange poses) and cell_truth.json."),
+    repeatability_mm: float = typer.Option(0.03, help="--robot-cell: robot position noise, "
+                                           "mm per axis (1 sigma)."),
+    repeatability_deg: float = typer.Option(0.005, help="--robot-cell: robot rotation noise, "
+                                            "deg per axis (1 sigma)."),
+    plate_poses: str = typer.Option(None, "--plate-poses", help="Render one image per pose "
+                                    "of this pose file (T_cam_plate, any convention of "
+                                    "`cutterpose.robot.poses`) instead of drawing poses."),
+    convention: str = typer.Option(None, help="--plate-poses: pose convention if the file "
+                                   "does not state it."),
+    length_unit: str = typer.Option(None, help="--plate-poses: mm or m, if not stated."),
+    angle_unit: str = typer.Option(None, help="--plate-poses: deg or rad, if not stated."),
 ):
-    """Render images of the circle calibration plate at poses that cover the field."""
+    """Render images of the circle calibration plate at poses that cover the field, at given
+    poses (--plate-poses), or from the stations of a simulated robot cell (--robot-cell)."""
     import json
     from pathlib import Path
 
@@ -294,7 +575,26 @@ def render_plate_cmd(
     cam = _render_camera(camera)
     folder = Path(out)
     folder.mkdir(parents=True, exist_ok=True)
-    poses = sample_plate_poses(cam, count, plate, distance_mm=dist, seed=seed)
+    if robot_cell:
+        from .robot.cell import RobotCell
+
+        if plate_poses:
+            raise InputError("give either --robot-cell or --plate-poses, not both")
+        cell = RobotCell.random(cam, seed, repeatability_mm=repeatability_mm,
+                                repeatability_deg=repeatability_deg)
+        cell.plate = plate
+        cell.write_handeye_set(folder, count, seed, settings,
+                               progress=lambda k, n: log(f"station {k}/{n}"))
+        typer.echo(f"wrote {count} plate images, robot_poses.csv, plate.json, camera.json and "
+                   f"cell_truth.json to {folder}")
+        return
+    if plate_poses:
+        from .robot.poses import read_poses
+
+        poses = read_poses(plate_poses, convention, length_unit, angle_unit, "cam", "plate")
+        count = len(poses)
+    else:
+        poses = sample_plate_poses(cam, count, plate, distance_mm=dist, seed=seed)
     rng = np.random.default_rng(seed)
     images = []
     for k, pose in enumerate(poses):
@@ -339,15 +639,7 @@ def calibrate_cmd(
     from .geometry.camera_files import convert_camera, detect_format, write_camera
 
     plate = _plate_from_options(plate_file, grid, spacing_mm, diameter_mm)
-    paths = []
-    for a in images:
-        p = Path(a)
-        if p.is_dir():
-            paths += sorted(q for q in p.iterdir()
-                            if q.suffix.lower() in (".png", ".jpg", ".jpeg", ".bmp", ".tif",
-                                                    ".tiff"))
-        else:
-            paths.append(p)
+    paths = _image_paths(images)
     fmt = detect_format(out, for_writing=True)
 
     def progress(name, reason):
@@ -384,6 +676,85 @@ def calibrate_cmd(
         typer.echo(f"note: {fmt} cannot hold the {res.camera.model} model; wrote the nearest "
                    f"{conv.camera.model} camera (worst pixel error {conv.max_error_px:.4f} px)")
     typer.echo(f"wrote {out} and {rep_path}")
+
+
+def _image_paths(items) -> list:
+    """Image files from files and folders (a folder's images in sorted order)."""
+    from pathlib import Path
+
+    paths = []
+    for a in items:
+        p = Path(a)
+        if p.is_dir():
+            paths += sorted(q for q in p.iterdir()
+                            if q.suffix.lower() in (".png", ".jpg", ".jpeg", ".bmp", ".tif",
+                                                    ".tiff"))
+        else:
+            paths.append(p)
+    return paths
+
+
+# ---- section: handeye (issue 11) ----------------------------------------------------------
+@app.command("handeye")
+@friendly
+def handeye_cmd(
+    images: list[str] = typer.Argument(..., help="Plate images, one per station (files or "
+                                       "folders; sorted by name)."),
+    robot_poses: str = typer.Option(..., "--robot-poses", help="Flange poses T_base_flange, "
+                                    "one per image in the images' order (PROTOCOL pose file "
+                                    "or a vendor convention, see docs/robot.md)."),
+    out: str = typer.Option(..., "--out", help="Hand-eye file to write (handeye.json)."),
+    camera: str = typer.Option(None, help="table1 (default), synthetic, or a camera file."),
+    plate_file: str = typer.Option(None, "--plate", help="plate.json (default: the 7x7 "
+                                   "30 mm plate)."),
+    convention: str = typer.Option(None, help="Pose convention, if the file does not state "
+                                   "it: protocol, quat-xyzw, quat-wxyz, abb, ur, rotvec, kuka, "
+                                   "fanuc, matrix."),
+    length_unit: str = typer.Option(None, help="mm or m, if the file does not state it."),
+    angle_unit: str = typer.Option(None, help="deg or rad, if the file does not state it."),
+    repeatability_mm: float = typer.Option(0.03, help="Robot position noise, mm per axis."),
+    repeatability_deg: float = typer.Option(0.005, help="Robot rotation noise, deg per axis."),
+    as_json: bool = typer.Option(False, "--json", help="Print the result as JSON."),
+):
+    """Eye-in-hand calibration: T_flange_cam and T_base_plate from plate images and flange
+    poses (OpenCV starts, joint refinement on the reprojection error); exit 3 if poor."""
+    import json
+
+    from .calibration.handeye import handeye_from_images, save_handeye
+    from .calibration.plate import CirclePlate, load_plate
+    from .robot.poses import read_poses
+
+    cam = _render_camera(camera)
+    plate = load_plate(plate_file) if plate_file else CirclePlate()
+    poses = read_poses(robot_poses, convention, length_unit, angle_unit)
+
+    def progress(name, reason):
+        if reason:
+            log(f"warning: {name} skipped (and its robot pose): {reason}")
+
+    res = handeye_from_images(_image_paths(images), poses, cam, plate, progress=progress,
+                              repeatability_mm=repeatability_mm,
+                              repeatability_deg=repeatability_deg)
+    save_handeye(res, out)
+    if as_json:
+        typer.echo(json.dumps(res.to_dict(), indent=1))
+    else:
+        X = res.T_flange_cam
+        a, b, g = X.euler_deg
+        typer.echo(f"T_flange_cam: t = {X.t_mm.round(3).tolist()} mm, alpha/beta/gamma = "
+                   f"{a:.4f} {b:.4f} {g:.4f} deg (start: {res.start_method})")
+        sd = res.handeye.covariance.diagonal() ** 0.5
+        typer.echo(f"std: {sd[:3].round(4).tolist()} mm, "
+                   f"{(sd[3:] * 57.29577951308232).round(5).tolist()} deg")
+        typer.echo(f"{'station':24s} {'used':>4s} {'rms px':>7s} {'plate mm':>9s} "
+                   f"{'plate deg':>9s}  distrust")
+        for st in res.stations:
+            typer.echo(f"{st.name:24s} {'yes' if st.used else 'NO':>4s} {st.rms_px:7.3f} "
+                       f"{st.position_mm:9.3f} {st.angle_deg:9.4f}  {st.distrust}")
+        typer.echo(res.verdict)
+        log(f"wrote {out}")
+    if not res.ok:
+        fail(f"hand-eye calibration {res.verdict}", code=3)
 
 
 @camera_app.command("convert")

@@ -51,3 +51,15 @@ class FeatureError(CutterposeError):
 
 class NoSolutionError(CutterposeError):
     """A solver found no admissible pose."""
+
+
+class DependencyError(CutterposeError):
+    """An optional dependency is missing; the message says which extra installs it."""
+
+
+class ClusterError(CutterposeError):
+    """A Dask cluster cannot be reached, or its workers cannot run the jobs."""
+
+
+class HandEyeFileError(ModelFileError):
+    """A hand-eye file (``handeye.json``) is missing or malformed."""

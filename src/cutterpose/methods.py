@@ -47,6 +47,8 @@ _ENTRIES: dict[str, tuple[str, str, bool, str]] = {
     "initial-paper": ("cutterpose.solvers.vanishing", "solve_paper", False,
                       "initial pose, the paper's image-plane vanishing-point median"),
     "dm": ("cutterpose.solvers.matching", "solve_dm", False, "distance matching (paper 2.3)"),
+    "dm-paper": ("cutterpose.solvers.matching", "solve_dm_paper", False,
+                 "the paper as written: its initial pose (2.2) + distance matching (2.3)"),
     "dm+": ("cutterpose.solvers.matching", "solve_dm_plus", False,
             "distance matching + continuous correspondence-free refinement"),
 }

@@ -37,11 +37,12 @@ from pathlib import Path
 import numpy as np
 
 from .errors import CutterposeError, FeatureError, ImageError
+from .frames import load_frame
 from .geometry.camera import Camera, default_camera
 from .geometry.holder import Holder, default_holder
 from .geometry.pose import Pose, pixel_jacobian, rotation_from_euler_deg
 from .geometry.working_range import MotionRange
-from .image import FeatureParams, Features, detect_features, load_image
+from .image import FeatureParams, Features, detect_features
 from .methods import get_method
 from .solvers.estimate import PoseEstimate
 
@@ -102,7 +103,9 @@ class Measurement:
     pose : the estimated pose (None when there is none; check ``quality.ok`` before use).
     std_dof : (6,) standard deviations of alpha, beta, gamma [deg], X, Y, Z [mm].
     quality : the verdict.
-    corners_px : (20, 2) detected corners, contour order, observed pixels (None if not found).
+    corners_px : (n, 2) the detected corners that were seen, observed pixels (None if not found):
+        the 20 in contour order (paper chain), or the seen ones in model order (field chain;
+        ``features.visible`` says which).
     features : everything the image processing found (None if it failed).
     estimate : the method's raw answer.
     timings_ms : wall time per stage.
@@ -116,6 +119,9 @@ class Measurement:
     features: Features | None = None
     estimate: PoseEstimate | None = None
     timings_ms: dict = field(default_factory=dict)
+    #: the base-frame answer (:class:`cutterpose.robot.RobotResult`) when :func:`measure` got a
+    #: hand-eye file and a flange pose
+    robot: object | None = None
 
     @property
     def ok(self) -> bool:
@@ -145,7 +151,10 @@ class Measurement:
             f = self.features
             d["features"] = {"roi_px": list(f.roi), "roi_score": round(f.roi_score, 4),
                              "threshold": f.threshold, "refined": f.refined,
-                             "n_segments": len(f.segments)}
+                             "n_segments": len(f.segments), "segmentation": f.segmentation,
+                             "order": f.order, "visible": np.asarray(f.visible).tolist()}
+        if self.robot is not None:
+            d.update(self.robot.to_dict())
         return d
 
 
@@ -179,8 +188,13 @@ def order_for_model(corners_px: np.ndarray, camera: Camera, holder: Holder) -> n
     return np.roll(c, -int(np.argmin(cost)), axis=0)
 
 
-def _match_to_projection(ideal: np.ndarray, proj: np.ndarray) -> np.ndarray:
-    """Detected ideal corners reordered (cyclic shift and direction) to best fit ``proj``."""
+def _match_to_projection(ideal: np.ndarray, proj: np.ndarray,
+                         order: str = "contour") -> np.ndarray:
+    """Detected ideal corners reordered (cyclic shift and direction) to best fit ``proj``.
+    In ``"holder"`` order (field chain: known correspondences, NaN rows for the corners not
+    seen) they are returned as they are."""
+    if order == "holder":
+        return np.asarray(ideal, float)
     best, best_cost = ideal, np.inf
     for seq in (ideal, ideal[::-1]):
         for k in range(len(seq)):
@@ -224,31 +238,37 @@ def edge_wear_effect(pose: Pose, features: Features, camera: Camera, holder: Hol
     # moving the line by off along the inward normal n: c' = c - off (a, b) . n
     L[:, 2] -= off * (L[:, :2] * features.inward_ideal).sum(axis=1)
     moved = intersect_consecutive(L)
-    if not np.all(np.isfinite(moved)):
+    if features.order == "holder":  # corner i: lines i - 1 and i (NaN where not seen)
+        moved = np.roll(moved, 1, axis=0)
+    elif not np.all(np.isfinite(moved)):
         return np.full(6, np.nan), float(np.median(off))
     dof = pose.dof
     proj = _project_ideal(dof, camera, holder)
     J = _jacobian(pose, camera, holder)
-    a = _match_to_projection(np.asarray(features.corners_ideal_px, float), proj)
-    b = _match_to_projection(moved, proj)
-    shift = np.linalg.lstsq(J, (b - a).ravel(), rcond=None)[0]
+    a = _match_to_projection(np.asarray(features.corners_ideal_px, float), proj, features.order)
+    b = _match_to_projection(moved, proj, features.order)
+    seen = np.repeat(np.isfinite(a).all(axis=1) & np.isfinite(b).all(axis=1), 2)
+    shift = np.linalg.lstsq(J[seen], (b - a).ravel()[seen], rcond=None)[0]
     return np.abs(shift), float(np.median(off))
 
 
-def pose_std(pose: Pose, corners_ideal_px: np.ndarray, camera: Camera, holder: Holder
-             ) -> tuple[np.ndarray, np.ndarray]:
+def pose_std(pose: Pose, corners_ideal_px: np.ndarray, camera: Camera, holder: Holder,
+             order: str = "contour") -> tuple[np.ndarray, np.ndarray]:
     """Per-DOF standard deviations from the residuals, ``s^2 (J^T J)^-1`` (module doc).
+
+    ``order="holder"``: corners in model order, NaN rows (not seen) left out.
 
     Returns
     -------
     std : (6,) deg and mm.
-    residuals : (N, 2) detected minus projected ideal pixels, model order.
+    residuals : (n, 2) detected minus projected ideal pixels, model order (seen corners).
     """
     dof = pose.dof
     proj = _project_ideal(dof, camera, holder)
-    det = _match_to_projection(np.asarray(corners_ideal_px, float), proj)
-    r = (det - proj)
-    J = _jacobian(pose, camera, holder)
+    det = _match_to_projection(np.asarray(corners_ideal_px, float), proj, order)
+    seen = np.isfinite(det).all(axis=1)
+    r = (det - proj)[seen]
+    J = _jacobian(pose, camera, holder)[np.repeat(seen, 2)]
     dof_free = r.size - 6
     s2 = float(np.sum(r ** 2)) / max(dof_free, 1)
     try:
@@ -259,19 +279,66 @@ def pose_std(pose: Pose, corners_ideal_px: np.ndarray, camera: Camera, holder: H
     return std, r
 
 
+def _pose_from_homography(H: np.ndarray, camera: Camera):
+    """``(R, t_mm)`` of a homography holder plane (mm) -> ideal px, ``H ~ K [r1 r2 t]``
+    (Zhang 2000, section 3.1), the rotation made orthonormal; None if degenerate."""
+    from .geometry.pose import nearest_rotation
+
+    M = np.linalg.solve(camera.K, np.asarray(H, float))
+    lam = 2.0 / (np.linalg.norm(M[:, 0]) + np.linalg.norm(M[:, 1]))
+    if M[2, 2] * lam < 0:
+        lam = -lam
+    r1, r2, t = M[:, 0] * lam, M[:, 1] * lam, M[:, 2] * lam
+    R = nearest_rotation(np.column_stack([r1, r2, np.cross(r1, r2)]))
+    return (R, t) if np.all(np.isfinite(R)) and t[2] > 0 else None
+
+
 def _solve(method: str, corners_px: np.ndarray, camera: Camera, holder: Holder,
-           limits: QualityLimits) -> PoseEstimate:
+           limits: QualityLimits, order: str = "contour", H=None) -> PoseEstimate:
+    """``corners_px``: all 20 in contour order, or (``order="holder"``, field chain) 20 in model
+    order with NaN rows for the corners not seen: PnP methods get the seen ones with their
+    model points, the correspondence-free ``dm``/``dm+`` only the seen ones, unordered (their
+    start: the pose of the outline homography ``H`` if given, else the range's centre)."""
     m = get_method(method)
+    corners_px = np.asarray(corners_px, float)
+    seen = np.isfinite(corners_px).all(axis=1)
+    if order == "holder" and not seen.all():
+        if m.needs_correspondences:
+            return m.solve(corners_px[seen], camera, holder.points_holder_mm[seen])
+        if method in ("dm", "dm+", "dm-paper"):
+            from .solvers import matching
+
+            t0 = time.perf_counter()
+            rng = MotionRange(center_dof=limits.range_center_dof,
+                              half_width_dof=limits.range_half_width_dof)
+            init = _pose_from_homography(H, camera) if H is not None else None
+            est = matching.distance_match(corners_px[seen], camera, holder, init,
+                                          motion_range=rng, refine=method == "dm+",
+                                          partial=True)
+            est.method = method
+            est.time_ms = (time.perf_counter() - t0) * 1e3
+            return est
+        return PoseEstimate.failure(method, f"needs all {holder.n_corners} corners, "
+                                    f"{int(seen.sum())} seen")
     if m.needs_correspondences:
+        if order == "holder":
+            return m.solve(corners_px, camera, holder)
         return m.solve(order_for_model(corners_px, camera, holder), camera, holder)
-    if method in ("dm", "dm+"):
+    if method in ("dm", "dm+", "dm-paper"):
         # the registered dm searches the synthetic range; images come from the real rig's
         from .solvers import matching, vanishing
 
         t0 = time.perf_counter()
         rng = MotionRange(center_dof=limits.range_center_dof,
-                                    half_width_dof=limits.range_half_width_dof)
-        init = vanishing.initial_pose(corners_px, camera, holder)
+                          half_width_dof=limits.range_half_width_dof)
+        # the initial pose searches the synthetic protocol's wide range, widened to cover the
+        # limits' range when that reaches beyond it (an approach from 900 mm)
+        wide = MotionRange()
+        lo = np.minimum(np.subtract(wide.center_dof, wide.half_width_dof), rng.lower)
+        hi = np.maximum(np.add(wide.center_dof, wide.half_width_dof), rng.upper)
+        start = vanishing.initial_pose_paper if method == "dm-paper" else vanishing.initial_pose
+        init = start(corners_px, camera, holder, MotionRange(
+            center_dof=tuple((lo + hi) / 2), half_width_dof=tuple((hi - lo) / 2)))
         if not init:
             return PoseEstimate.failure(method, f"initial pose: {init.reason}")
         est = matching.distance_match(corners_px, camera, holder, init, motion_range=rng,
@@ -283,7 +350,7 @@ def _solve(method: str, corners_px: np.ndarray, camera: Camera, holder: Holder,
 
 
 def ambiguity_ratio(est: PoseEstimate, corners_ideal_px, camera: Camera, holder: Holder,
-                    min_rotation_deg: float = 1.0) -> float:
+                    min_rotation_deg: float = 1.0, order: str = "contour") -> float:
     """RMS residual of the best pose over that of the best *different* candidate (rotation
     at least ``min_rotation_deg`` away; the planar two-fold ambiguity); NaN without one."""
     from .geometry.pose import geodesic_deg
@@ -299,8 +366,8 @@ def ambiguity_ratio(est: PoseEstimate, corners_ideal_px, camera: Camera, holder:
     def rms(R, t):
         dof = Pose(np.asarray(R, float), np.asarray(t, float).reshape(3)).dof
         proj = _project_ideal(dof, camera, holder)
-        det = _match_to_projection(np.asarray(corners_ideal_px, float), proj)
-        return float(np.sqrt(np.mean(np.sum((det - proj) ** 2, axis=1))))
+        det = _match_to_projection(np.asarray(corners_ideal_px, float), proj, order)
+        return float(np.sqrt(np.nanmean(np.sum((det - proj) ** 2, axis=1))))
 
     e0 = rms(R0, est.t_cam_holder_mm)
     e1 = min(rms(R, t) for R, t in others)
@@ -358,7 +425,8 @@ def measure_features(features: Features, camera: Camera, holder: Holder, method:
     timings = dict(features.timings_ms)
     t0 = time.perf_counter()
     try:
-        est = _solve(method, features.corners_px, camera, holder, limits)
+        est = _solve(method, features.corners_px, camera, holder, limits, features.order,
+                     features.H_ideal_holder)
     except CutterposeError as e:
         est = PoseEstimate.failure(method, f"{type(e).__name__}: {e}")
     timings["solve"] = (time.perf_counter() - t0) * 1e3
@@ -368,30 +436,37 @@ def measure_features(features: Features, camera: Camera, holder: Holder, method:
     pose = None
     if est:
         pose = Pose(est.R_cam_holder, est.t_cam_holder_mm)
-        std, r = pose_std(pose, features.corners_ideal_px, camera, holder)
+        std, r = pose_std(pose, features.corners_ideal_px, camera, holder, features.order)
         bias, offset_px = edge_wear_effect(pose, features, camera, holder)
         # a systematic error the residuals do not show: added to the reported std
         std = np.sqrt(std ** 2 + bias ** 2)
     else:
         bias, offset_px = None, math.nan
-    amb = ambiguity_ratio(est, features.corners_ideal_px, camera, holder)
+    amb = ambiguity_ratio(est, features.corners_ideal_px, camera, holder,
+                          order=features.order)
     q = _verdict(est, std, r, limits, amb, bias, offset_px)
     timings["quality"] = (time.perf_counter() - t0) * 1e3
-    return Measurement(method, pose, std, q, features.corners_px, features, est, timings)
+    return Measurement(method, pose, std, q, features.visible_corners_px, features, est, timings)
 
 
 def measure(image, camera: Camera | None = None, holder: Holder | None = None,
             method: str = "dm+", params: FeatureParams | None = None,
-            limits: QualityLimits | None = None) -> Measurement:
-    """Measure the holder's pose in one image.
+            limits: QualityLimits | None = None, *, handeye=None, T_base_flange=None,
+            robot_accuracy=None) -> Measurement:
+    """Measure the holder's pose in one image (and, given ``handeye`` and ``T_base_flange``,
+    in the robot's base frame: :func:`cutterpose.robot.locate`, result in ``.robot``).
 
     Parameters
     ----------
-    image : path of an image file, or a grey/colour array of the camera's size.
+    image : path of an image file or of a raw Mono8 frame (``.raw`` with its sidecar), a raw
+        8-bit frame buffer of the camera's size (bytes, bytearray, memoryview: used in place,
+        no decode), or a grey/colour array of the camera's size (:mod:`cutterpose.frames`).
     camera, holder : defaults: the Table 1 camera and ``holder.json``.
     method : a registered pose method (``dm+`` by default).
-    params : image processing parameters (the paper's by default).
+    params : image processing parameters (default: the field chain,
+        ``FeatureParams.for_camera(camera)``; ``FeatureParams.paper()`` for section 2.1's).
     limits : when to refuse a pose.
+    handeye, T_base_flange, robot_accuracy : see :func:`cutterpose.robot.locate`.
 
     Returns
     -------
@@ -412,20 +487,36 @@ def measure(image, camera: Camera | None = None, holder: Holder | None = None,
     get_method(method)  # unknown names fail before any work
     t0 = time.perf_counter()
     load_ms = 0.0
-    if isinstance(image, (str, Path)):
-        image = load_image(image)
+    if not isinstance(image, np.ndarray):
+        # a file is decoded (or read raw); a raw buffer is only viewed (cutterpose.frames)
+        image = load_frame(image, camera)
         load_ms = (time.perf_counter() - t0) * 1e3
     try:
         feats = detect_features(image, camera, holder, params)
     except FeatureError as e:
         timings = {"load": load_ms} if load_ms else {}
         timings["total"] = (time.perf_counter() - t0) * 1e3
-        return Measurement(method, None, np.full(6, np.nan), Quality(False, str(e)),
-                           timings_ms=timings)
+        return _with_robot(Measurement(method, None, np.full(6, np.nan), Quality(False, str(e)),
+                                       timings_ms=timings),
+                           camera, holder, handeye, T_base_flange, robot_accuracy)
     m = measure_features(feats, camera, holder, method, limits)
     if load_ms:
         m.timings_ms = {"load": load_ms} | m.timings_ms
     m.timings_ms["total"] = (time.perf_counter() - t0) * 1e3
+    return _with_robot(m, camera, holder, handeye, T_base_flange, robot_accuracy)
+
+
+def _with_robot(m: Measurement, camera, holder, handeye, T_base_flange, robot_accuracy):
+    """Attach the base-frame answer when both a hand-eye file and a flange pose are given."""
+    if handeye is None and T_base_flange is None:
+        return m
+    if handeye is None or T_base_flange is None:
+        from .errors import InputError
+
+        raise InputError("the base frame needs both a hand-eye file and a flange pose")
+    from .robot.locate import locate
+
+    m.robot = locate(m, handeye, T_base_flange, robot_accuracy, camera=camera, holder=holder)
     return m
 
 

@@ -12,7 +12,8 @@ Outputs in ``out``: ``trials.csv`` (protocol columns, ``sigma_px`` empty), ``sum
 ``summary.json`` (the shared report writers), ``corners.csv`` (per image: difficulty, RMS of the
 detected corners against the true ones with and without the gradient refinement, threshold
 used, segmentation: the paper's ``contour`` or the model-guided fallback ``model``) and
-``failures.csv`` (trial, method, reason).
+``failures.csv`` (trial, method, reason) and ``verdicts.csv`` (trial, method, accepted 0/1,
+reason: the measurement's own verdict, whatever the truth says).
 """
 
 from __future__ import annotations
@@ -21,7 +22,6 @@ import csv
 import json
 import math
 import os
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import replace
 from pathlib import Path
 
@@ -31,6 +31,7 @@ from ..errors import CutterposeError, InputError
 from ..geometry.camera import camera_from_dict
 from ..geometry.holder import Holder, default_holder, holder_from_dict
 from ..image import FeatureParams, detect_features, load_image
+from ..parallel import run_jobs
 from ..pipeline import measure_features
 from .report import summarize, trial_rows, write_summary, write_trials_csv
 
@@ -79,7 +80,7 @@ def _one_image(args):
     i, entry, folder, camera, holder, methods, params = args
     R = np.asarray(entry["R_cam_holder"], float)
     t = np.asarray(entry["t_cam_holder_mm"], float)
-    out = {"trial": i, "rows": [], "failures": [], "corners": None}
+    out = {"trial": i, "rows": [], "failures": [], "corners": None, "verdicts": []}
     info = {"trial": i, "file": entry["file"], "difficulty": entry.get("difficulty", ""),
             "threshold": "", "segmentation": "", "rms_refined_px": math.nan,
             "rms_threshold_px": math.nan, "reason": ""}
@@ -89,6 +90,7 @@ def _one_image(args):
         for m in methods:
             out["rows"] += trial_rows(i, math.nan, m, R, t, nan_R, nan_t, math.nan)
             out["failures"].append((i, m, reason))
+            out["verdicts"].append((i, m, 0, reason))
         info["reason"] = reason
         out["corners"] = info
 
@@ -114,6 +116,7 @@ def _one_image(args):
             rows = trial_rows(i, math.nan, m, R, t, meas.pose.R, meas.pose.t_mm, ms)
         else:
             rows = trial_rows(i, math.nan, m, R, t, nan_R, nan_t, ms)
+        out["verdicts"].append((i, m, int(meas.ok), "" if meas.ok else meas.quality.reason))
         if not meas.ok:
             for r in rows:
                 r["failed"] = 1
@@ -127,8 +130,12 @@ def _one_image(args):
 
 
 def run_images(folder, methods: list[str], out, workers: int = 1, params=None,
-               limit: int | None = None, progress=None) -> list[dict]:
+               limit: int | None = None, progress=None, scheduler=None) -> list[dict]:
     """Run every method on every image of a set; write the outputs (module doc) into ``out``.
+
+    Images run in this process, in ``workers`` processes or on the Dask cluster at
+    ``scheduler`` (:mod:`cutterpose.parallel`; the workers read the images, so the set must be
+    at the same path on every worker, e.g. a shared file system); the outputs are the same.
 
     Returns the summary statistics (:func:`cutterpose.experiments.report.summarize`).
     """
@@ -142,20 +149,17 @@ def run_images(folder, methods: list[str], out, workers: int = 1, params=None,
     params = params or FeatureParams()
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    jobs = [(i, e, str(folder), camera, holder, list(methods), params)
+    # the folder as the workers will see it: absolute, as on a shared file system
+    jobs = [(i, e, str(Path(folder).resolve()), camera, holder, list(methods), params)
             for i, e in enumerate(entries)]
-    results = []
-    if workers > 1:
-        with ProcessPoolExecutor(max_workers=workers) as ex:
-            for k, r in enumerate(ex.map(_one_image, jobs)):
-                results.append(r)
-                if progress:
-                    progress(k + 1, len(jobs))
-    else:
-        for k, j in enumerate(jobs):
-            results.append(_one_image(j))
-            if progress:
-                progress(k + 1, len(jobs))
+    count = [0]
+
+    def done(i, _):
+        count[0] += 1
+        if progress:
+            progress(count[0], len(jobs))
+
+    results = run_jobs(_one_image, jobs, workers, scheduler, done)
     rows = [r for res in results for r in res["rows"]]
     order = {m: k for k, m in enumerate(methods)}
     rows.sort(key=lambda r: (order[r["method"]], r["trial"]))
@@ -165,6 +169,11 @@ def run_images(folder, methods: list[str], out, workers: int = 1, params=None,
         w.writerow(["trial", "method", "reason"])
         for res in results:
             w.writerows(res["failures"])
+    with open(out / "verdicts.csv", "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["trial", "method", "accepted", "reason"])
+        for res in results:
+            w.writerows(res["verdicts"])
     cols = ["trial", "file", "difficulty", "threshold", "segmentation", "rms_refined_px",
             "rms_threshold_px", "reason"]
     with open(out / "corners.csv", "w", newline="") as fh:

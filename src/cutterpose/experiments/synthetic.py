@@ -22,9 +22,7 @@ poses the bound on the std is the root mean of the per-trial bound variances.
 from __future__ import annotations
 
 import math
-import os
 import time
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -35,6 +33,7 @@ from ..geometry.camera import Camera, PinholeCamera, default_camera
 from ..geometry.holder import Holder, default_holder, holder_from_dict
 from ..geometry.pose import pixel_jacobian, rotation_from_euler_deg
 from ..methods import Method, get_method
+from ..parallel import JobRunner, run_jobs
 from .report import summarize, trial_rows, write_summary, write_trials_csv
 
 ANGLE_RANGE_DEG = 60.0
@@ -246,11 +245,14 @@ def _registered(name: str) -> bool:
 
 
 def run_trials(methods: list[Method], trials: Trials, workers: int = 1, progress=None,
-               chunk: int = 25) -> dict[str, tuple]:
+               chunk: int = 25, scheduler=None, runner: JobRunner | None = None
+               ) -> dict[str, tuple]:
     """Solve every trial with every method. Returns ``{name: (R, t, time_ms, reasons)}``.
 
-    Results do not depend on ``workers``: every trial carries its own scrambling and methods are
-    deterministic.
+    Chunks of ``chunk`` trials run where :mod:`cutterpose.parallel` puts them (this process,
+    ``workers`` processes, the Dask cluster at ``scheduler``, or an open ``runner``). Results
+    do not depend on that: every trial carries its own scrambling, methods are deterministic
+    and the chunks are put back in trial order. ``progress(k)`` after each chunk of k trials.
     """
     holder = holder_for_points(trials.points_holder_mm)
     names = [m.name for m in methods]
@@ -258,21 +260,8 @@ def run_trials(methods: list[Method], trials: Trials, workers: int = 1, progress
     T = len(trials)
     jobs = [(specs, trials.camera, trials.points_holder_mm, holder, trials.points_px[i:i + chunk],
              trials.shift[i:i + chunk], trials.reverse[i:i + chunk]) for i in range(0, T, chunk)]
-    parts = []
-    if workers > 1 and len(jobs) > 1:
-        import multiprocessing as mp
-
-        ctx = mp.get_context("fork") if os.name == "posix" else None
-        with ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as ex:
-            for res in ex.map(_solve_chunk, jobs):
-                parts.append(res)
-                if progress:
-                    progress(sum(len(j[4]) for j in jobs[len(parts) - 1:len(parts)]))
-    else:
-        for job in jobs:
-            parts.append(_solve_chunk(job))
-            if progress:
-                progress(len(job[4]))
+    done = (lambda i, _: progress(len(jobs[i][4]))) if progress else None
+    parts = run_jobs(_solve_chunk, jobs, workers, scheduler, done, runner)
     out = {}
     for name in names:
         out[name] = tuple(
@@ -311,8 +300,11 @@ class SweepResult:
 def run_synthetic(methods: list[str] | list[Method], sigmas=(0.0, 0.5, 1.0, 1.5, 2.0, 2.5, 3.0,
                   3.5, 4.0, 4.5, 5.0), n_trials: int = 1000, out_dir=None, seed: int = 0,
                   workers: int = 1, trials_file=None, show_progress: bool = True,
-                  plot: bool = True) -> SweepResult:
+                  plot: bool = True, scheduler=None) -> SweepResult:
     """Run the Fig. 5 sweep (or a trial file) through ``methods``.
+
+    ``workers`` local processes, or the Dask cluster at ``scheduler`` (an address such as
+    ``tcp://host:8786``): the rows are the same either way (:mod:`cutterpose.parallel`).
 
     Writes ``trials.csv``, ``summary.md``, ``summary.json`` and ``fig5.png`` to ``out_dir``
     when given.
@@ -331,22 +323,24 @@ def run_synthetic(methods: list[str] | list[Method], sigmas=(0.0, 0.5, 1.0, 1.5,
             levels.append((float(s), np.arange(n_trials), tr))
     total = sum(len(tr) for _, _, tr in levels) * len(meths)
     rows, crlb = [], {}
-    bar = _progress(total, show_progress)
-    try:
-        for s, idx, tr in levels:
+    with JobRunner(workers, scheduler) as runner:
+        bar = _progress(total, show_progress)
+        try:
+            for s, idx, tr in levels:
+                if bar:
+                    bar.update(description=f"sigma {s:g} px ({runner.where})")
+                res = run_trials(meths, tr, runner=runner,
+                                 progress=(lambda k: bar.advance(k * len(meths))) if bar
+                                 else None)
+                if s > 0:
+                    crlb[s] = crlb_std(tr, s).tolist()
+                for m in meths:
+                    R, t, tm, _ = res[m.name]
+                    rows += trial_rows(idx, tr.sigma_px, m.name, tr.R_cam_holder,
+                                       tr.t_cam_holder_mm, R, t, tm)
+        finally:
             if bar:
-                bar.update(description=f"sigma {s:g} px")
-            res = run_trials(meths, tr, workers=workers,
-                             progress=(lambda k: bar.advance(k * len(meths))) if bar else None)
-            if s > 0:
-                crlb[s] = crlb_std(tr, s).tolist()
-            for m in meths:
-                R, t, tm, _ = res[m.name]
-                rows += trial_rows(idx, tr.sigma_px, m.name, tr.R_cam_holder, tr.t_cam_holder_mm,
-                                   R, t, tm)
-    finally:
-        if bar:
-            bar.close()
+                bar.close()
     stats = summarize(rows)
     out = None
     if out_dir is not None:

@@ -17,8 +17,9 @@ from importlib import resources
 
 import numpy as np
 
-from ..errors import HolderModelError
+from ..errors import HolderModelError, InputError
 from .jsonfile import read_json
+from .pose import Pose
 
 __all__ = ["Holder", "load_holder", "default_holder", "holder_from_dict"]
 
@@ -32,12 +33,15 @@ class Holder:
     corners_mm : (N, 2) inner-contour corners (X, Y), counter-clockwise.
     outer_length_x_mm, outer_width_y_mm : outer rectangle, centred on the origin.
     name : free text.
+    grasp_frame : ``T_holder_grasp``, where the gripper takes the cutter (file field
+        ``grasp_frame``); None: the holder frame itself (:mod:`cutterpose.robot.grasp`).
     """
 
     corners_mm: np.ndarray
     outer_length_x_mm: float
     outer_width_y_mm: float
     name: str = ""
+    grasp_frame: Pose | None = None
     _cache: dict = field(default_factory=dict, repr=False, compare=False)
 
     @property
@@ -94,10 +98,13 @@ class Holder:
         return np.column_stack([n, -np.einsum("ij,ij->i", n, p)])
 
     def to_dict(self) -> dict:
-        return {"name": self.name, "units": "mm",
-                "outer_rectangle": {"length_x": self.outer_length_x_mm,
-                                    "width_y": self.outer_width_y_mm},
-                "inner_contour_corners": self.corners_mm.tolist()}
+        d = {"name": self.name, "units": "mm",
+             "outer_rectangle": {"length_x": self.outer_length_x_mm,
+                                 "width_y": self.outer_width_y_mm},
+             "inner_contour_corners": self.corners_mm.tolist()}
+        if self.grasp_frame is not None:
+            d["grasp_frame"] = {"T_holder_grasp": self.grasp_frame.matrix.tolist()}
+        return d
 
 
 # ------------------------------------------------------------------------------------------
@@ -203,7 +210,26 @@ def holder_from_dict(d: dict, where: str = "holder") -> Holder:
     a, b = dims[0] / 2, dims[1] / 2
     if np.any(np.abs(corners[:, 0]) >= a) or np.any(np.abs(corners[:, 1]) >= b):
         raise HolderModelError(f"{where}: the inner contour must lie inside 'outer_rectangle'")
-    return Holder(corners, dims[0], dims[1], name=str(d.get("name", "")))
+    return Holder(corners, dims[0], dims[1], name=str(d.get("name", "")),
+                  grasp_frame=_grasp_frame(d.get("grasp_frame"), where))
+
+
+def _grasp_frame(g, where: str) -> Pose | None:
+    """Optional ``"grasp_frame"``: ``{"T_holder_grasp": 4x4}`` or ``{"position_mm": [x, y, z],
+    "euler_deg": [alpha, beta, gamma]}`` (the protocol's Z-Y-X angles), in the holder frame."""
+    if g is None:
+        return None
+    try:
+        if isinstance(g, dict) and "T_holder_grasp" in g:
+            return Pose.from_matrix(np.asarray(g["T_holder_grasp"], float), "holder", "grasp")
+        if isinstance(g, dict) and "position_mm" in g:
+            e = np.asarray(g.get("euler_deg", [0.0, 0.0, 0.0]), float).reshape(3)
+            return Pose.from_euler(*e, *np.asarray(g["position_mm"], float).reshape(3),
+                                   to_frame="holder", from_frame="grasp")
+    except (InputError, TypeError, ValueError) as e:
+        raise HolderModelError(f"{where}: field 'grasp_frame': {e}") from None
+    raise HolderModelError(f"{where}: field 'grasp_frame' must hold 'T_holder_grasp' (4x4) or "
+                           "'position_mm' (and optionally 'euler_deg')")
 
 
 def load_holder(path) -> Holder:

@@ -130,6 +130,34 @@ class Pose:
         """The protocol's nominal pose: ``R = I``, ``t = (0, 0, 600)`` mm."""
         return cls(np.eye(3), NOMINAL_T_MM.copy())
 
+    @classmethod
+    def from_matrix(cls, T, to_frame: str = "cam", from_frame: str = "holder") -> Pose:
+        """Pose from a 4x4 homogeneous matrix ``T_<to>_<from>`` (last row ``0 0 0 1``)."""
+        T = np.asarray(T, float)
+        if T.shape != (4, 4):
+            raise InputError(f"a 4x4 transform is needed, got shape {T.shape}")
+        if np.abs(T[3] - [0.0, 0.0, 0.0, 1.0]).max() > 1e-9:
+            raise InputError(f"the last row of a 4x4 transform must be 0 0 0 1, got "
+                             f"{T[3].tolist()}")
+        return cls(T[:3, :3], T[:3, 3], to_frame, from_frame)
+
+    @property
+    def matrix(self) -> np.ndarray:
+        """The 4x4 homogeneous matrix ``T_<to>_<from>`` (mm)."""
+        T = np.eye(4)
+        T[:3, :3] = self.R
+        T[:3, 3] = self.t_mm
+        return T
+
+    @property
+    def name(self) -> str:
+        """``T_<to>_<from>``."""
+        return f"T_{self.to_frame}_{self.from_frame}"
+
+    def with_frames(self, to_frame: str, from_frame: str) -> Pose:
+        """The same transform under other frame names (e.g. a pose read from a file)."""
+        return Pose(self.R, self.t_mm, to_frame, from_frame)
+
     @property
     def euler_deg(self) -> np.ndarray:
         """(alpha, beta, gamma) in degrees."""

@@ -16,12 +16,13 @@ from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
+from scipy.ndimage import gaussian_filter1d
 
 from ..errors import FeatureError
 from ..geometry.camera import Camera
 from ..geometry.holder import Holder
 from ..geometry.pose import Pose
-from .edges import line_from
+from .edges import MAD_TO_SIGMA, line_from, mad_scale, sample_profiles, tukey_weights
 from .params import Segment, signed_area, where_px
 
 if TYPE_CHECKING:
@@ -200,3 +201,94 @@ def check_edge_support(lines, edges, spans, camera, params):
                 f"edge {k} near {where_px(mid)} px: gradient edge found along only "
                 f"{100 * support:.0f} % of it (< {100 * min_fraction:.0f} %): occluded or "
                 "damaged")
+
+
+# ------------------------------------------------------------------------------------------
+# field chain (issue 10): the outline found on the gradient, robustly
+def _line_distances_px(H: np.ndarray, plane_lines: np.ndarray, pts: np.ndarray) -> np.ndarray:
+    """Signed distance (ideal px) of image points to the images ``H^-T l`` of plane lines."""
+    Li = plane_lines @ np.linalg.inv(H)  # rows: image lines l^T H^-1
+    Li = Li / np.linalg.norm(Li[:, :2], axis=1, keepdims=True)
+    return (Li[:, :2] * pts).sum(axis=1) + Li[:, 2]
+
+
+def search_outline(img: np.ndarray, roi_origin, camera: Camera, holder: Holder,
+                   H0: np.ndarray, params: FeatureParams):
+    """Model-guided search of the pocket outline on the gradient (field chain).
+
+    From the homography ``H0`` (holder plane mm -> ideal px; the outline match), for each gate
+    ``W`` of ``search_gates_px``: profiles across every projected edge (one per
+    ``search_step_px``, ``corner_trim_px`` away from the corners, ``+-W`` px, smoothed along
+    the normal with ``W / 12`` px) give per profile the strongest dark-to-bright step going
+    outwards (pocket to face), if it stands out of the profiles' noise (3 robust sigmas of the
+    derivative in wide windows, a quarter of the median step in narrow ones: no fixed grey
+    level or contrast). The homography is re-fitted to all those
+    points at once, each on its edge's line (:func:`_fit_h_lines`), by IRLS with Tukey weights
+    whose scale is the MAD of the residuals under the current homography (the robust start).
+    Edge points on the cutter's silhouette have the opposite polarity; those on slurry, chips
+    or highlights get no weight.
+
+    Returns
+    -------
+    H : (3, 3) the fitted homography; support : share of the last gate's profiles (over the
+    whole outline) whose edge point fits it.
+    """
+    plane_lines = holder.edge_lines
+    model = np.asarray(holder.corners_mm, float)
+    n = len(model)
+    H = np.asarray(H0, float)
+    frac = 0.0
+    for W in params.search_gates_px:
+        C = _apply_h(H, model)
+        sign = np.sign(signed_area(C))
+        nxt = np.roll(C, -1, axis=0)
+        step = 1.0 if W >= 10 else 0.5
+        offsets = np.arange(-W, W + 1e-9, step)
+        bases, normals, which = [], [], []
+        for k in range(n):
+            a, b = C[k], nxt[k]
+            length = float(np.linalg.norm(b - a))
+            d = (b - a) / max(length, 1e-9)
+            ts = np.arange(params.corner_trim_px, length - params.corner_trim_px + 1e-9,
+                           params.search_step_px)
+            bases.append(a + ts[:, None] * d)
+            normals.append(np.broadcast_to(-sign * np.array([-d[1], d[0]]), (len(ts), 2)))
+            which.append(np.full(len(ts), k))
+        base, n_out, which = np.vstack(bases), np.vstack(normals), np.concatenate(which)
+        if len(base) < 16 or not np.all(np.isfinite(base)):
+            raise FeatureError("the pocket outline fit degenerated: holder not in view")
+        prof = sample_profiles(img, roi_origin, camera, base, n_out, offsets)
+        prof = gaussian_filter1d(prof, max(W / 12.0, 0.8) / step, axis=1)
+        g = np.diff(prof, axis=1)
+        j = np.argmax(g, axis=1)
+        peak = g[np.arange(len(g)), j]
+        # wide windows are mostly flat: the derivative's MAD is its noise; narrow ones hold
+        # little but the edge, so there a step must reach a quarter of the median step
+        noise = (MAD_TO_SIGMA * float(np.median(np.abs(g - np.median(g)))) if W >= 10 else
+                 0.25 / 3.0 * float(np.median(peak[peak > 0])) if np.any(peak > 0) else 0.0)
+        # parabolic sub-sample peak
+        jj = np.clip(j, 1, g.shape[1] - 2)
+        y0, y1, y2 = (g[np.arange(len(g)), jj + e] for e in (-1, 0, 1))
+        den = y0 - 2 * y1 + y2
+        frac_j = np.where(np.abs(den) > 1e-12, 0.5 * (y0 - y2) / np.where(den == 0, 1, den), 0)
+        o = offsets[0] + step * (jj + 0.5 + np.clip(frac_j, -1, 1))
+        ok = (peak > 3.0 * noise) & (j > 0) & (j < g.shape[1] - 1)
+        if ok.sum() < 16:
+            raise FeatureError(f"no pocket edge found along the outline ({int(ok.sum())} edge "
+                               "points): holder hidden or not in view")
+        p = base[ok] + o[ok, None] * n_out[ok]
+        ln = plane_lines[which[ok]]
+        r = _line_distances_px(H, ln, p)
+        s = mad_scale(r, 0.25)
+        for _ in range(6):
+            w = tukey_weights(r, s)
+            if np.count_nonzero(w) < 16:
+                break
+            q = np.column_stack([p, np.ones(len(p))]) @ np.linalg.inv(H).T
+            H1 = _fit_h_lines(ln, p, np.sqrt(w) / np.abs(q[:, 2]))
+            r = _line_distances_px(H1, ln, p)
+            H = H1
+            s = min(s, mad_scale(r[w > 0], 0.1))
+        # share of all profiles (the whole outline) whose edge point fits
+        frac = float(np.count_nonzero(tukey_weights(r, s) > 0)) / len(base)
+    return H, frac

@@ -22,6 +22,7 @@ import numpy as np
 from scipy.ndimage import gaussian_filter1d
 
 from ..geometry.camera import Camera
+from .params import signed_area
 
 if TYPE_CHECKING:
     from .params import FeatureParams
@@ -237,3 +238,166 @@ def edge_wear(image: np.ndarray, roi_origin: np.ndarray, camera: Camera, lines_i
         dark[k] = 1.0 - (np.interp(e + 2 * w, offsets, m) - pocket) / contrast
         off[k] = max(abs(dark[k]) - 0.05, 0.0) * w
     return dark, off
+
+
+# ------------------------------------------------------------------------------------------
+# robust line estimation for the field chain (issue 10)
+TUKEY_C = 4.685   #: Tukey's biweight constant: 95 % efficiency under Gaussian residuals
+MAD_TO_SIGMA = 1.4826
+
+
+def tukey_weights(r: np.ndarray, scale: float) -> np.ndarray:
+    """Tukey biweight ``(1 - (r / c)^2)^2`` for ``|r| < c = 4.685 scale``, else 0 (a
+    redescending M-estimator: points far off the line get no weight at all)."""
+    u = np.asarray(r, float) / (TUKEY_C * max(scale, 1e-12))
+    return np.where(np.abs(u) < 1.0, (1.0 - u * u) ** 2, 0.0)
+
+
+def mad_scale(r: np.ndarray, floor: float = 0.0) -> float:
+    """Robust standard deviation of residuals about a fitted line: ``1.4826 median |r|``."""
+    return max(MAD_TO_SIGMA * float(np.median(np.abs(r))), floor)
+
+
+def lmeds_line(p: np.ndarray, hypotheses: int = 64, prior: np.ndarray | None = None,
+               seed: int = 0, gate_points: np.ndarray | None = None, gate_px: float = np.inf):
+    """Least-median-of-squares line through points ``p`` (n, 2): among lines through random
+    pairs of points (and ``prior``, a homogeneous line, if given) the one whose median squared
+    residual is smallest. Robust to just under 50 % outliers with no threshold (Rousseeuw
+    1984). With ``gate_points`` only hypotheses passing within ``gate_px`` of all of them are
+    admitted (the ends of the predicted edge: a line must stay near the outline fit). Returns
+    the line and its LMedS scale ``1.4826 (1 + 5 / (n - 2)) sqrt(med r^2)``."""
+    n = len(p)
+    rng = np.random.default_rng(seed)
+    i = rng.integers(0, n, hypotheses)
+    j = rng.integers(0, n, hypotheses)
+    keep = i != j
+    a, b = p[i[keep]], p[j[keep]]
+    d = b - a
+    nrm = np.column_stack([-d[:, 1], d[:, 0]])
+    ln = np.linalg.norm(nrm, axis=1)
+    ok = ln > 1e-9
+    nrm = nrm[ok] / ln[ok, None]
+    L = np.column_stack([nrm, -(nrm * a[ok]).sum(axis=1)])
+    if prior is not None:
+        L = np.vstack([np.asarray(prior, float)[None], L])
+    if gate_points is not None:
+        L = L[np.abs(gate_points @ L[:, :2].T + L[:, 2]).max(axis=0) <= gate_px]
+    if len(L) == 0:
+        c, _, nn = fit_line(p)
+        return line_from(c, nn), np.inf
+    med = np.median((p @ L[:, :2].T + L[:, 2]) ** 2, axis=0)
+    k = int(np.argmin(med))
+    return L[k], MAD_TO_SIGMA * (1 + 5 / max(n - 2, 1)) * float(np.sqrt(med[k]))
+
+
+def tukey_line(p: np.ndarray, line0: np.ndarray, scale0: float, floor_px: float = 0.02,
+               iterations: int = 20):
+    """IRLS total least squares line with Tukey weights from ``line0`` (a robust start); the
+    scale is re-estimated from the weighted points' residuals each step (MAD of the current
+    inliers, never above the previous scale). Returns line, scale and the final weights."""
+    L = np.asarray(line0, float)
+    s = max(float(scale0), floor_px)
+    w = tukey_weights(p @ L[:2] + L[2], s)
+    for _ in range(iterations):
+        if np.count_nonzero(w) < 3:
+            break
+        c, _, nn = fit_line(p, w)
+        if nn @ L[:2] < 0:
+            nn = -nn
+        L1 = line_from(c, nn)
+        r = p @ L1[:2] + L1[2]
+        s = min(s, mad_scale(r[w > 0], floor_px))
+        w = tukey_weights(r, s)
+        moved = abs(L1[2] - L[2]) + float(np.linalg.norm(L1[:2] - L[:2])) * 1e3
+        L = L1
+        if moved < 1e-4:
+            break
+    return L, s, w
+
+
+def sample_profiles(img: np.ndarray, roi_origin, camera: Camera, base_ideal: np.ndarray,
+                    n_out: np.ndarray, offsets: np.ndarray) -> np.ndarray:
+    """Grey profiles ``I(distort(q + o n_out))`` for base points ``q`` (T, 2, ideal px) at
+    offsets ``o`` (O,), as a (T, O) float32 array (bilinear, on ``img`` whose pixel (0, 0) is
+    ``roi_origin``). The distortion is linearised along each short profile (two
+    :meth:`Camera.distort_px` calls for T points instead of T x O)."""
+    if len(base_ideal) == 0:
+        return np.zeros((0, len(offsets)), np.float32)
+    n_out = np.broadcast_to(np.asarray(n_out, float), base_ideal.shape)
+    o0 = camera.distort_px(base_ideal)
+    d1 = camera.distort_px(base_ideal + n_out) - o0
+    obs = o0[:, None, :] + offsets[None, :, None] * d1[:, None, :] - np.asarray(roi_origin)
+    return cv2.remap(img, obs[..., 0].astype(np.float32), obs[..., 1].astype(np.float32),
+                     cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+
+
+def robust_edge_lines(img: np.ndarray, roi_origin, camera: Camera, pred_ideal: np.ndarray,
+                      params: FeatureParams):
+    """The 20 lines on their sub-pixel gradient edge points, robustly (field chain).
+
+    ``pred_ideal`` (N, 2): the corners predicted by the outline fit, in holder order; edge
+    ``k`` runs from corner ``k`` to ``k + 1``. Along each predicted edge, away from its
+    corners by ``corner_trim_px``, a profile every ``refine_step_px`` across
+    ``+-refine_half_width_px`` (0.25 px steps, unfiltered image) gives an edge point (centroid
+    of the half-maximum run of the dark-to-bright derivative, :func:`_half_max_centroids`).
+    Points on slurry, on the cutter's silhouette, on a chip or a highlight are outliers: the
+    line starts from the least-median-of-squares line (:func:`lmeds_line`, the predicted line
+    among the hypotheses) and is refined by Tukey IRLS with a MAD scale (:func:`tukey_line`).
+    A line is *seen* if its inliers cover ``min_line_support`` of the profiled length and it
+    stays within ``max_line_shift_px`` of the prediction.
+
+    Returns
+    -------
+    lines : (N, 3) lines (NaN where not seen); seen : (N,) bool; edge_points_px : per line
+    the inlier edge points (observed px); support : (N,) covered fraction; scale_px : (N,)
+    the final robust scale.
+    """
+    n = len(pred_ideal)
+    nxt = np.roll(pred_ideal, -1, axis=0)
+    sign = np.sign(signed_area(pred_ideal))
+    hw = params.refine_half_width_px
+    offsets = np.arange(-hw, hw + 1e-9, 0.25)
+    lines = np.full((n, 3), np.nan)
+    seen = np.zeros(n, bool)
+    support = np.zeros(n)
+    scale = np.full(n, np.nan)
+    edges: list = []
+    trim = params.corner_trim_px
+    for k in range(n):
+        a, b = pred_ideal[k], nxt[k]
+        length = float(np.linalg.norm(b - a))
+        d = (b - a) / max(length, 1e-9)
+        n_in = sign * np.array([-d[1], d[0]])
+        ts = np.arange(trim, length - trim + 1e-9, params.refine_step_px)
+        if len(ts) < 5:
+            edges.append(np.zeros((0, 2)))
+            continue
+        base = a + ts[:, None] * d
+        prof = sample_profiles(img, roi_origin, camera, base, -n_in, offsets)
+        if params.refine_sigma_px > 0:
+            prof = gaussian_filter1d(prof, params.refine_sigma_px / 0.25, axis=1)
+        o, rows = _half_max_centroids(np.diff(prof, axis=1), offsets[0] + 0.125, 0.25)
+        pts = base[rows] - o[:, None] * n_in
+        if len(pts) < 5:
+            edges.append(np.zeros((0, 2)))
+            continue
+        pred = line_from(a, n_in)
+        ends = base[[0, -1]]
+        L0, s0 = lmeds_line(pts, prior=pred, seed=k, gate_points=ends,
+                            gate_px=params.max_line_shift_px)
+        L, s, w = tukey_line(pts, L0, s0)
+        inl = w > 0
+        support[k] = np.count_nonzero(inl) * params.refine_step_px / max(ts[-1] - ts[0], 1.0)
+        scale[k] = s
+        # the fitted line's distance to the prediction at both ends of the profiled run
+        shift = np.abs(ends @ L[:2] + L[2]).max()
+        if support[k] >= params.min_line_support and shift <= params.max_line_shift_px:
+            seen[k] = True
+            lines[k] = L
+        edges.append(camera.distort_px(pts[inl]))
+    # a line much noisier than the others rests on something else (a lump's outline)
+    if seen.sum() >= 3:
+        noisy = seen & (scale > 3.0 * np.median(scale[seen]))
+        seen &= ~noisy
+        lines[noisy] = np.nan
+    return lines, seen, edges, support, scale

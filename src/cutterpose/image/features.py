@@ -46,28 +46,30 @@ import time
 
 import numpy as np
 
-from ..errors import FeatureError
+from ..errors import FeatureError, InputError
 from ..geometry.camera import Camera
 from ..geometry.holder import Holder
 from .contour import contour_and_segments, initial_lines, threshold_levels
-from .contour_model import check_edge_support, model_features
+from .contour_model import _apply_h, check_edge_support, model_features, search_outline
 from .corners import (
     check_corner_angles,
     check_corners_on_contour,
     check_families,
     corners_from_lines,
 )
-from .edges import edge_wear, intersect_consecutive, refine_lines
-from .params import FeatureParams, Features, where_px
+from .edges import edge_wear, intersect_consecutive, line_from, refine_lines, robust_edge_lines
+from .params import FeatureParams, Features, Segment, signed_area, where_px
 from .preprocessing import as_grey_u8, binarize, check_image, reduce_image
-from .region import find_roi
+from .region import find_roi, match_outline
 
 __all__ = ["detect_features"]
 
 
 def detect_features(image: np.ndarray, camera: Camera, holder: Holder,
                     params: FeatureParams | None = None) -> Features:
-    """Run the image processing of section 2.1 on a grey image of the camera's size.
+    """Run the image processing on a grey image of the camera's size: the field chain
+    (:func:`detect_features_field`, the default) or, with ``params.chain == "paper"``, the
+    threshold chain of section 2.1 (module doc).
 
     Raises
     ------
@@ -78,6 +80,10 @@ def detect_features(image: np.ndarray, camera: Camera, holder: Holder,
         ``holder.n_corners`` characteristic segments (the message says how many and where).
     """
     params = params or FeatureParams.for_camera(camera)
+    if params.chain == "field":
+        return detect_features_field(image, camera, holder, params)
+    if params.chain != "paper":
+        raise InputError(f"unknown feature chain {params.chain!r}: 'field' or 'paper'")
     timings: dict[str, float] = {}
     t = time.perf_counter()
 
@@ -174,3 +180,119 @@ def detect_features(image: np.ndarray, camera: Camera, holder: Holder,
                     threshold=int(level), refined=True, timings_ms=timings,
                     segmentation="model", edge_darkening=dark, edge_offset_px=off,
                     inward_ideal=inward)
+
+
+def _timer():
+    timings: dict[str, float] = {}
+    t = [time.perf_counter()]
+
+    def lap(name):
+        now = time.perf_counter()
+        timings[name] = (now - t[0]) * 1e3
+        t[0] = now
+
+    return timings, lap
+
+
+def detect_features_field(image: np.ndarray, camera: Camera, holder: Holder,
+                          params: FeatureParams) -> Features:
+    """The field chain (issue 10): lines and corners from the gradient, robustly, with no dark
+    pocket, dark surround or threshold.
+
+    1. the pocket outline matched on the reduced image's gradient orientations
+       (:func:`~cutterpose.image.region.match_outline`): a homography plane -> image;
+    2. the outline searched along its normals with shrinking gates, the homography re-fitted
+       robustly to the dark-to-bright edge points (Tukey IRLS, MAD scale;
+       :func:`~cutterpose.image.contour_model.search_outline`);
+    3. each of the 20 lines fitted to its sub-pixel gradient edge points by LMedS + Tukey IRLS
+       (:func:`~cutterpose.image.edges.robust_edge_lines`); a line with too little inlier
+       support is not seen;
+    4. corner ``i`` (holder order) = intersection of edges ``i - 1`` and ``i``, seen when both
+       lines are seen and it lies within ``max_corner_gap_px`` of the outline fit's corner.
+
+    Returns
+    -------
+    Features with ``order == "holder"``, ``visible`` the seen corners (the others NaN).
+
+    Raises
+    ------
+    ImageError
+        Wrong size, black, saturated or uniform image.
+    FeatureError
+        No outline match, no edge points, or fewer than 6 corners seen.
+    """
+    timings, lap = _timer()
+    image = as_grey_u8(image)
+    small = reduce_image(image, params.roi_downscale)
+    check_image(image, camera, small)
+    lap("check")
+    H0, score = match_outline(small, camera, holder, params)
+    lap("roi")
+    model = np.asarray(holder.corners_mm, float)
+    h, w = image.shape
+    outline = camera.distort_px(_apply_h(H0, model))
+    m = max(params.search_gates_px) + 0.1 * float(np.ptp(outline, axis=0).max()) + 16
+    u0, v0 = np.maximum(np.floor(outline.min(axis=0) - m), 0).astype(int)
+    u1, v1 = np.minimum(np.ceil(outline.max(axis=0) + m) + 1, [w, h]).astype(int)
+    if u1 - u0 < 16 or v1 - v0 < 16:
+        raise FeatureError("the pocket outline matched outside the image: holder not in view")
+    roi = (int(u0), int(v0), int(u1), int(v1))
+    sub = image[v0:v1, u0:u1].astype(np.float32)
+    origin = np.array([u0, v0], float)
+    H, support_all = search_outline(sub, origin, camera, holder, H0, params)
+    lap("outline search")
+    if support_all < params.min_outline_support:
+        raise FeatureError(f"the pocket outline fits the image's edges along only "
+                           f"{100 * support_all:.0f} % of its length (< "
+                           f"{100 * params.min_outline_support:.0f} %): holder hidden, partly "
+                           "out of view, or not in view")
+    pred = _apply_h(H, model)
+    pred_px = camera.distort_px(pred)
+    near = ~camera.in_image(pred_px, params.border_margin_px)
+    if near.any():
+        raise FeatureError(f"the holder is partly out of view: its pocket corner near "
+                           f"{where_px(pred_px[near][0])} px is outside the image")
+    lines, seen, edges, support, _ = robust_edge_lines(sub, origin, camera, pred, params)
+    lap("lines")
+    n = len(model)
+    X = intersect_consecutive(np.where(np.isfinite(lines), lines, 0.0))
+    corners_ideal = np.roll(X, 1, axis=0)  # corner i: edges i - 1 and i
+    visible = seen & np.roll(seen, 1)
+    with np.errstate(invalid="ignore"):
+        visible &= np.linalg.norm(corners_ideal - pred, axis=1) <= params.max_corner_gap_px
+    corners_ideal[~visible] = np.nan
+    corners_px = np.full((n, 2), np.nan)
+    if visible.any():
+        corners_px[visible] = camera.distort_px(corners_ideal[visible])
+    if visible.sum() < 6:
+        k = int(np.argmin(support))
+        mid = camera.distort_px(0.5 * (pred[k] + pred[(k + 1) % n])[None])[0]
+        raise FeatureError(f"only {int(visible.sum())} of {n} corners seen (lines seen: "
+                           f"{int(seen.sum())}; least-supported edge near {where_px(mid)} px, "
+                           f"{100 * support[k]:.0f} % of it): holder hidden or damaged")
+    lap("corners")
+    # lines, spans and normals of the outline fit, for the wear indicator and the overlay
+    sign = np.sign(signed_area(pred))
+    nxt = np.roll(pred, -1, axis=0)
+    d = (nxt - pred) / np.linalg.norm(nxt - pred, axis=1, keepdims=True)
+    inward = sign * np.column_stack([-d[:, 1], d[:, 0]])
+    lines_fit = np.array([line_from(pred[k], inward[k]) for k in range(n)])
+    length = np.linalg.norm(nxt - pred, axis=1)
+    # edge_wear keeps 2 refine_trim_px more from each end (about a contour segment's span)
+    spans = [(0.5 * params.corner_trim_px, float(length[k]) - 0.5 * params.corner_trim_px,
+              pred[k], d[k]) for k in range(n)]
+    dark, off = edge_wear(sub, origin, camera, np.where(seen[:, None], lines, lines_fit), spans,
+                          inward, params)
+    dark[~seen], off[~seen] = np.nan, np.nan
+    lap("edge wear")
+    segs = [Segment("line", 0, 0, camera.undistort_px(e) if len(e) else np.zeros((0, 2)),
+                    float(length[k])) for k, e in enumerate(edges)]
+    t = np.linspace(0, 1, 24, endpoint=False)
+    dense = (pred[:, None, :] + t[None, :, None] * (nxt - pred)[:, None, :]).reshape(-1, 2)
+    return Features(corners_px=corners_px, corners_ideal_px=corners_ideal, lines_ideal=lines,
+                    lines_threshold_ideal=lines_fit, segments=segs, primitives=[],
+                    contour_px=camera.distort_px(dense), edge_points_px=edges, roi=roi,
+                    roi_score=score, threshold=-1, refined=True, timings_ms=timings,
+                    segmentation="field", edge_darkening=dark, edge_offset_px=off,
+                    inward_ideal=inward, visible=visible, order="holder", lines_visible=seen,
+                    H_ideal_holder=H)

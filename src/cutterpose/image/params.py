@@ -20,11 +20,21 @@ PAPER_FOCAL_PX = 0.00854103 / 3.45e-6
 
 @dataclass(frozen=True)
 class FeatureParams:
-    """Parameters of the image processing; the defaults are the paper's (section 2.1).
+    """Parameters of the image processing.
+
+    Two chains (``chain``): ``"field"`` (the default; issue 10) finds the pocket's outline on
+    gradient orientations and its 20 lines by a model-guided, robust edge search, needing no
+    dark pocket or dark surround; ``"paper"`` (:meth:`paper`) is section 2.1 as before:
+    grey-level template, threshold 70..255, longest inside contour, curvature segmentation
+    (the threshold and segmentation fields below are the paper's values), with the gradient
+    refinement and fallbacks beyond the paper (``refine``, ``threshold_fallback``,
+    ``model_fallback``; set them to ``False`` / ``"none"`` for the chain exactly as published).
 
     Pixel lengths are for the paper's 12 Mpx camera (f ~ 2475 px at 600 mm); use
     :meth:`scaled` for a camera with another resolution.
     """
+
+    chain: str = "field"                  #: "field" (gradient outline, robust lines) or "paper"
 
     median_ksize: int = 7                 #: median mask (paper: 7 x 7)
     roi_downscale: int = 8                #: template matching on an image reduced this much
@@ -56,6 +66,23 @@ class FeatureParams:
     model_fallback: str = "homography"    #: "none": no model-guided lines when segmentation fails
     band_only: bool = True                #: filter/threshold only tiles the edge passes through
     tile_px: int = 64                     #: tile size of the band (a multiple of roi_downscale)
+    # --- field chain (issue 10) ---
+    #: in-plane turns of the outline template (deg; the working range is +-10 deg)
+    roi_gammas_deg: tuple = (-12.0, -9.0, -6.0, -3.0, 0.0, 3.0, 6.0, 9.0, 12.0)
+    roi_line_px: int = 3                  #: width of the template's outline (reduced px)
+    roi_min_edge_score: float = 0.3       #: outline orientation match below this: no holder
+    #: half widths (px) of the successive model-guided searches along the outline's normals
+    search_gates_px: tuple = (40.0, 14.0, 6.0)
+    search_step_px: float = 10.0          #: spacing of the search profiles along each edge
+    corner_trim_px: float = 10.0          #: profiles kept this far from the predicted corners
+    min_line_support: float = 0.3         #: a line is seen if inliers cover this much of it
+    min_outline_support: float = 0.6      #: the outline fit must rest on edges along this much
+    max_line_shift_px: float = 2.5        #: a seen line stays this close to the outline fit
+
+    @classmethod
+    def paper(cls, **changes) -> FeatureParams:
+        """The threshold chain of section 2.1 (``chain="paper"``), its values as defaults."""
+        return cls(**({"chain": "paper"} | changes))
 
     @classmethod
     def for_camera(cls, camera: Camera, **changes) -> FeatureParams:
@@ -71,7 +98,11 @@ class FeatureParams:
         return replace(self, median_ksize=k if k >= 3 else 3,
                        roi_downscale=max(1, int(round(self.roi_downscale * factor))),
                        roi_margin_px=int(round(self.roi_margin_px * factor)),
-                       min_segment_px=self.min_segment_px * factor)
+                       min_segment_px=self.min_segment_px * factor,
+                       search_gates_px=tuple(max(3.0, g * factor)
+                                             for g in self.search_gates_px),
+                       search_step_px=max(2.0, self.search_step_px * factor),
+                       corner_trim_px=max(4.0, self.corner_trim_px * factor))
 
 
 @dataclass
@@ -119,6 +150,13 @@ class Features:
     edge_offset_px : (N,) per line, how far (px) the edge estimate may lie outside the true edge
         because of that darkening (:func:`edge_wear`).
     inward_ideal : (N, 2) unit normals of the lines towards the pocket (ideal px).
+    visible : (N,) bool, the corners that were seen (both their lines seen); the others are NaN
+        in ``corners_px`` / ``corners_ideal_px``. All True on the paper's chain.
+    order : "contour" (corners in contour order: unknown start and direction; paper chain) or
+        "holder" (``corners_px[i]`` is the image of ``holder.json`` corner ``i``; field chain).
+    lines_visible : (N,) bool, the lines that were seen (``lines_ideal`` NaN for the others).
+    H_ideal_holder : (3, 3) homography holder plane (mm) -> ideal px of the outline fit (field
+        chain), else None.
     """
 
     corners_px: np.ndarray
@@ -138,6 +176,21 @@ class Features:
     edge_darkening: np.ndarray | None = None
     edge_offset_px: np.ndarray | None = None
     inward_ideal: np.ndarray | None = None
+    visible: np.ndarray | None = None
+    order: str = "contour"
+    lines_visible: np.ndarray | None = None
+    H_ideal_holder: np.ndarray | None = None
+
+    def __post_init__(self):
+        if self.visible is None:
+            self.visible = np.isfinite(np.asarray(self.corners_px, float)).all(axis=1)
+        if self.lines_visible is None:
+            self.lines_visible = np.isfinite(np.asarray(self.lines_ideal, float)).all(axis=1)
+
+    @property
+    def visible_corners_px(self) -> np.ndarray:
+        """(n, 2) the seen corners only, observed px (in ``order``, the others left out)."""
+        return np.asarray(self.corners_px, float)[self.visible]
 
 
 def signed_area(p: np.ndarray) -> float:

@@ -102,3 +102,128 @@ def find_roi(image: np.ndarray, camera: Camera, holder: Holder, params: FeatureP
     u1 = int(min(np.ceil(hi[0] + margin) + 1, w))
     v1 = int(min(np.ceil(hi[1] + margin) + 1, h))
     return (int(u0), int(v0), u1, v1), float(score)
+
+
+# ------------------------------------------------------------------------------------------
+# field chain (issue 10): the pocket outline matched on gradient orientation
+_OUTLINE_CACHE: dict = {}
+
+
+def _outline_template(camera: Camera, holder: Holder, downscale: int, gamma_deg: float,
+                      line_px: int):
+    """Doubled-angle template of the pocket outline at the nominal pose turned by
+    ``gamma_deg`` about the optical axis, on the image reduced ``downscale`` times: two float32
+    channels ``(cos 2 phi, sin 2 phi)`` along the outline (``phi``: the edge normal's angle, a
+    ``line_px`` wide band), zero elsewhere; with the template's origin (reduced px), the
+    homography plane (mm) -> ideal px of its pose and its number of outline pixels. Cached."""
+    key = (repr(camera), holder.corners_mm.tobytes(), int(downscale), round(gamma_deg, 3),
+           int(line_px))
+    if key in _OUTLINE_CACHE:
+        return _OUTLINE_CACHE[key]
+    s = float(downscale)
+    P = holder.points_holder_mm
+    pose = Pose.from_euler(0.0, 0.0, gamma_deg, 0.0, 0.0, 600.0)
+    ideal = (P @ pose.R.T + pose.t_mm) @ camera.K.T
+    ideal = ideal[:, :2] / ideal[:, 2:3]
+    H = camera.K @ np.column_stack([pose.R[:, 0], pose.R[:, 1], pose.t_mm])
+    # the outline densely in observed px (distortion bends long edges)
+    t = np.linspace(0.0, 1.0, 16, endpoint=False)
+    nxt = np.roll(ideal, -1, axis=0)
+    dense = (ideal[:, None, :] + t[None, :, None] * (nxt - ideal)[:, None, :]).reshape(-1, 2)
+    obs = camera.distort_px(np.vstack([dense, dense[:1]]))
+    small = (obs + 0.5) / s - 0.5
+    origin = np.floor(small.min(axis=0)) - 2
+    size = (np.ceil(small.max(axis=0) - origin) + 3).astype(int)
+    tpl = np.zeros((size[1], size[0], 2), np.float32)
+    q = small - origin
+    for a, b in zip(q[:-1], q[1:]):
+        d = b - a
+        phi = np.arctan2(d[0], -d[1])  # the normal's angle
+        val = (float(np.cos(2 * phi)), float(np.sin(2 * phi)))
+        cv2.line(tpl, tuple(np.rint(a * 16).astype(int)), tuple(np.rint(b * 16).astype(int)),
+                 val, int(line_px), cv2.LINE_8, 4)
+    n_on = float(np.count_nonzero(np.abs(tpl).sum(axis=2)))
+    out = (tpl, origin.astype(int), H / H[2, 2], n_on)
+    if len(_OUTLINE_CACHE) > 64:
+        _OUTLINE_CACHE.clear()
+    _OUTLINE_CACHE[key] = out
+    return out
+
+
+def _orientation_field(img: np.ndarray) -> np.ndarray:
+    """Doubled-angle gradient field ``w (cos 2 theta, sin 2 theta)`` (H, W, 2) float32, ``w``
+    the gradient magnitude saturated at its 90th percentile."""
+    img = cv2.GaussianBlur(img.astype(np.float32), (0, 0), 1.0)
+    gx = cv2.Sobel(img, cv2.CV_32F, 1, 0, ksize=3)
+    gy = cv2.Sobel(img, cv2.CV_32F, 0, 1, ksize=3)
+    m2 = gx * gx + gy * gy
+    m = np.sqrt(m2)
+    g0 = max(float(np.percentile(m[::2, ::2], 90)), 1e-3)
+    w = np.minimum(m / g0, 1.0) / np.maximum(m2, 1e-12)
+    return np.dstack([(gx * gx - gy * gy) * w, 2.0 * gx * gy * w]).astype(np.float32)
+
+
+def match_outline(small: np.ndarray, camera: Camera, holder: Holder, params: FeatureParams):
+    """Find the pocket from gradient orientations alone (field chain; no dark pocket or dark
+    surround needed): the image reduced ``roi_downscale`` times is turned into the doubled-angle
+    field ``w (cos 2 theta, sin 2 theta)`` of its gradient (``theta`` its direction, ``w`` the
+    magnitude saturated at the 90th percentile), and the outline templates
+    (:func:`_outline_template`) are correlated with it, coarse to fine (every turn on the
+    image reduced twice more, then the best turn +-1.5 deg). ``cos 2 (theta - phi)`` is 1
+    where a gradient lies along the outline's normal, whatever its sign (a bright cutter in a
+    dark pocket, a face as bright as its surround), and averages to 0 on texture.
+
+    Returns
+    -------
+    H : (3, 3) homography holder plane (mm) -> ideal px of the best template moved onto the
+        match (a similarity of the nominal pose: the start of the outline search).
+    score : mean ``w cos 2 (theta - phi)`` over the template's outline (0 .. 1).
+
+    Raises
+    ------
+    FeatureError
+        The best score is below ``roi_min_edge_score`` (no holder outline in view).
+    """
+    s8 = int(params.roi_downscale)
+    field = _orientation_field(small)
+    # coarse: every turn on the image reduced twice more; fine: the best turn +-1.5 deg at
+    # the reduced scale, in a window round the coarse match
+    coarse = cv2.resize(field, (field.shape[1] // 2, field.shape[0] // 2),
+                        interpolation=cv2.INTER_AREA)
+    best = None
+    for g in params.roi_gammas_deg:
+        tpl, origin, H, n_on = _outline_template(camera, holder, 2 * s8, g, 2)
+        if tpl.shape[0] > coarse.shape[0] or tpl.shape[1] > coarse.shape[1]:
+            raise FeatureError("the holder outline is larger than the image: check the camera "
+                               "model")
+        res = cv2.matchTemplate(coarse, tpl, cv2.TM_CCORR)
+        _, sc, _, loc = cv2.minMaxLoc(res)
+        sc /= n_on
+        if best is None or sc > best[0]:
+            best = (sc, g, (np.array(loc) - origin) * 2)
+    _, g0, shift8 = best
+    best = None
+    for g in (g0 - 1.5, g0, g0 + 1.5):
+        tpl, origin, H, n_on = _outline_template(camera, holder, s8, g, params.roi_line_px)
+        th, tw = tpl.shape[:2]
+        c0 = np.rint(shift8 + origin).astype(int) - 4  # window's top-left, reduced px
+        x0, y0 = max(c0[0], 0), max(c0[1], 0)
+        x1 = min(c0[0] + tw + 8, field.shape[1])
+        y1 = min(c0[1] + th + 8, field.shape[0])
+        if x1 - x0 < tw or y1 - y0 < th:
+            continue
+        res = cv2.matchTemplate(field[y0:y1, x0:x1], tpl, cv2.TM_CCORR)
+        _, sc, _, loc = cv2.minMaxLoc(res)
+        sc /= n_on
+        if best is None or sc > best[0]:
+            best = (sc, (loc[0] + x0, loc[1] + y0), origin, H)
+    if best is None:
+        raise FeatureError("no holder found: the pocket outline does not fit in the image")
+    score, loc, origin, H = best
+    if not np.isfinite(score) or score < params.roi_min_edge_score:
+        raise FeatureError(f"no holder found: the pocket outline matches the image's edges at "
+                           f"{score:.2f} at best (< {params.roi_min_edge_score}); is the holder "
+                           "in view?")
+    shift = (np.array(loc, float) - origin) * params.roi_downscale
+    T = np.array([[1.0, 0.0, shift[0]], [0.0, 1.0, shift[1]], [0.0, 0.0, 1.0]])
+    return T @ H, float(score)

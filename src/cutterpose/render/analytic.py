@@ -109,6 +109,17 @@ class RenderSettings:
     # occlusion: number of corners partly covered by a lump of muck in front of the holder
     occluded_corners: int = 0
     occluder_radius_px: float = 55.0
+    # field conditions (issue 10): lumps of slurry across the middle of edges, and their grey
+    # range (dark muck by default; a face-bright lump has no contrast to the face)
+    edge_lumps: int = 0
+    lump_dn: tuple = (15.0, 50.0)
+    # a bright worn disc cutter in the pocket, seen edge-on: an ellipse of these semi-axes
+    # (holder X, Y, mm) round the pocket's centre, ``cutter_height_mm`` in front of the top
+    # face (towards the camera), so that from an oblique view it hides part of the walls and
+    # of the edge; 0 = no cutter
+    cutter_semi_axes_mm: tuple = (0.0, 0.0)
+    cutter_height_mm: float = 40.0
+    cutter_dn: float = 200.0
     # optics and sensor
     defocus_sigma_px: float = 0.8
     defocus_kernel: str = "gaussian"  # or "disk" (radius = 2 sigma)
@@ -131,6 +142,15 @@ PRESETS: dict[str, RenderSettings] = {
                            texture=0.14, machining_marks=0.08),
     "occluded": RenderSettings(name="occluded", occluded_corners=1),
     "blurred": RenderSettings(name="blurred", defocus_sigma_px=2.5, defocus_kernel="disk"),
+    # field conditions (issue 10): cutterhead of the same steel nearly flush with the face, a
+    # bright disc cutter in the pocket ...
+    "cutter": RenderSettings(name="cutter", cutterhead_albedo=0.7, cutterhead_depth_mm=3.0,
+                             cutter_semi_axes_mm=(175.0, 32.0)),
+    # ... and slurry: lumps across two edges and over one corner, more corrosion
+    "field": RenderSettings(name="field", cutterhead_albedo=0.7, cutterhead_depth_mm=3.0,
+                            cutter_semi_axes_mm=(175.0, 32.0), edge_lumps=2,
+                            occluded_corners=1, corrosion=0.18, scratches=80,
+                            lump_dn=(15.0, 120.0)),
     "hard": RenderSettings(name="hard", light_dn=140.0, beam_sigma_deg=30.0, electrons_per_dn=5.0,
                            read_noise_dn=2.5, edge_wear_mm=4.0, corrosion=0.25, scratches=120,
                            corrosion_darkening=0.5,
@@ -140,7 +160,8 @@ PRESETS: dict[str, RenderSettings] = {
 
 
 def preset(name: str) -> RenderSettings:
-    """The named preset (``easy``, ``dim``, ``worn``, ``occluded``, ``blurred``, ``hard``)."""
+    """The named preset (``easy``, ``dim``, ``worn``, ``occluded``, ``blurred``, ``hard``,
+    ``cutter``, ``field``)."""
     try:
         return PRESETS[name]
     except KeyError:
@@ -636,11 +657,13 @@ def _render_irradiance(scene: _Scene, camera: Camera) -> tuple[np.ndarray, np.nd
 
 
 def _occlude(value: np.ndarray, corners_px: np.ndarray, settings: RenderSettings,
-             rng: np.random.Generator) -> list[int]:
-    """Paint lumps of muck (dark, irregular, antialiased) over part of random corners, in
-    front of everything. Returns the indices of the covered corners."""
+             rng: np.random.Generator, n: int | None = None,
+             shade_dn: tuple = (15.0, 50.0)) -> list[int]:
+    """Paint lumps of muck (irregular, antialiased, grey in ``shade_dn``) over part of ``n``
+    random points of ``corners_px`` (default: ``occluded_corners`` of the corners), in front
+    of everything. Returns the indices of the covered points."""
     h, w = value.shape
-    n = int(settings.occluded_corners)
+    n = int(settings.occluded_corners) if n is None else int(n)
     if n <= 0:
         return []
     chosen = sorted(rng.choice(len(corners_px), size=min(n, len(corners_px)), replace=False))
@@ -662,15 +685,48 @@ def _occlude(value: np.ndarray, corners_px: np.ndarray, settings: RenderSettings
         for k in range(1, 6):  # irregular outline: a random Fourier series of the radius
             rad += r0 * rng.uniform(0.0, 0.25 / k) * np.cos(k * phi + rng.uniform(0, 2 * np.pi))
         cover = np.clip(rad - np.hypot(dx, dy) + 0.5, 0.0, 1.0)
-        shade = rng.uniform(15.0, 50.0) + 10.0 * fractal_noise(cover.shape, rng, 20, 3)
+        shade = rng.uniform(*shade_dn) + 10.0 * fractal_noise(cover.shape, rng, 20, 3)
         sub = value[v0c:v1c, u0c:u1c]
         sub[:] = (1 - cover) * sub + cover * shade
     return [int(i) for i in chosen]
 
 
+def _paint_cutter(value: np.ndarray, pose: Pose, camera: Camera, settings: RenderSettings,
+                  rng: np.random.Generator) -> None:
+    """Paint the bright disc cutter (``cutter_semi_axes_mm``; module doc of the settings) in
+    front of the pocket: its outline is an ellipse at ``Z = -cutter_height_mm`` projected
+    through the camera, filled antialiased with a steel grey shaded across its width (a
+    rounded rim) and mottled."""
+    ax, ay = settings.cutter_semi_axes_mm
+    if ax <= 0 or ay <= 0:
+        return
+    h, w = value.shape
+    phi = np.linspace(0, 2 * np.pi, 180, endpoint=False)
+    P = np.column_stack([ax * np.cos(phi), ay * np.sin(phi),
+                         np.full(phi.shape, -settings.cutter_height_mm)])
+    uv = camera.project(pose.apply(P))
+    if not np.all(np.isfinite(uv)):
+        return
+    u0, v0 = np.maximum(np.floor(uv.min(axis=0)).astype(int) - 2, 0)
+    u1, v1 = np.minimum(np.ceil(uv.max(axis=0)).astype(int) + 3, [w, h])
+    if u0 >= u1 or v0 >= v1:
+        return
+    cover = np.zeros((v1 - v0, u1 - u0), np.float32)
+    cv2.fillPoly(cover, [np.rint((uv - [u0, v0]) * 16).astype(np.int32)], 1.0, cv2.LINE_AA, 4)
+    # shading across the rim: brightest along the ellipse's long axis
+    c = camera.project(pose.apply(np.array([[0.0, 0.0, -settings.cutter_height_mm]])))[0]
+    vv, uu = np.mgrid[v0:v1, u0:u1].astype(np.float32)
+    half_px = max(float(np.ptp(uv[:, 1])) / 2, 1.0)
+    across = np.clip(np.abs(vv - c[1]) / half_px, 0, 1)
+    shade = settings.cutter_dn * (1.0 - 0.35 * across ** 2) * (
+        1.0 + 0.08 * fractal_noise(cover.shape, rng, 30, 3))
+    sub = value[v0:v1, u0:u1]
+    sub[:] = (1 - cover) * sub + cover * shade
+
+
 def render_holder(pose: Pose | None = None, camera: Camera | None = None,
                   holder: Holder | None = None, settings: RenderSettings | str | None = None,
-                  seed: int = 0) -> Rendered:
+                  seed: int = 0, noise_seed: int | None = None) -> Rendered:
     """Render an 8-bit grey image of the holder at ``pose``.
 
     Parameters
@@ -680,6 +736,8 @@ def render_holder(pose: Pose | None = None, camera: Camera | None = None,
     holder : the holder model (default: ``holder.json``).
     settings : a :class:`RenderSettings` or the name of a preset (default ``"easy"``).
     seed : seeds every random choice (textures, occluders, noise): same seed, same image.
+    noise_seed : if given, seeds the sensor noise instead (frames of one sequence: the same
+        holder surface, fresh noise in every frame).
 
     Returns
     -------
@@ -692,13 +750,22 @@ def render_holder(pose: Pose | None = None, camera: Camera | None = None,
         settings = PRESETS["easy"]
     elif isinstance(settings, str):
         settings = preset(settings)
-    r_scene, r_occ, r_noise = np.random.default_rng(seed).spawn(3)
+    # children are fixed by their index: the fourth stream leaves the first three unchanged
+    r_scene, r_occ, r_noise, r_field = np.random.default_rng(seed).spawn(4)
+    if noise_seed is not None:
+        r_noise = np.random.default_rng(noise_seed)
     corners_px = camera.project(pose.apply(holder.points_holder_mm))
     # top-face texels of ~0.9 pixel footprint: finer is wasted, coarser blurs the steel
     texel_mm = max(0.1, 0.9 * float(pose.t_mm[2]) / camera.focal_px)
     scene = _Scene(pose, holder, settings, r_scene, texel_mm)
     value, _ = _render_irradiance(scene, camera)
+    _paint_cutter(value, pose, camera, settings, r_field)
     occluded = _occlude(value, corners_px, settings, r_occ)
+    if settings.edge_lumps > 0:
+        # lumps over the middle of edges (mid-points of the edges, projected)
+        mid_mm = 0.5 * (holder.corners_mm + np.roll(holder.corners_mm, -1, axis=0))
+        mids = camera.project(pose.apply(np.column_stack([mid_mm, np.zeros(len(mid_mm))])))
+        _occlude(value, mids, settings, r_field, settings.edge_lumps, settings.lump_dn)
     value = defocus(value, settings.defocus_sigma_px, settings.defocus_kernel)
     image = add_sensor_noise(value, settings, r_noise)
     return Rendered(image, corners_px, pose, settings, int(seed), occluded)
@@ -735,30 +802,36 @@ def random_pose(rng: np.random.Generator, max_angle_deg: float = 10.0,
     return Pose.from_euler(*ang, sh[0], sh[1], 600.0 + sh[2])
 
 
-def _set_item(args) -> dict:
-    """Render image ``i`` of a set and write it; returns its ``truth.json`` entry."""
-    i, seed, out, camera, holder, names, p, max_angle_deg, max_shift_mm = args
+def _set_item(args) -> tuple[dict, bytes]:
+    """Render image ``i`` of a set; returns its ``truth.json`` entry and the PNG file's bytes
+    (the caller writes it, so workers on other machines need no access to ``out_dir``)."""
+    i, seed, camera, holder, names, p, max_angle_deg, max_shift_mm = args
     img_seed = int(np.random.SeedSequence([seed, i]).generate_state(1)[0])
     rng = np.random.default_rng(img_seed)
     pose = random_pose(rng, max_angle_deg, max_shift_mm)
     name = names[int(rng.choice(len(names), p=p))]
     r = render_holder(pose, camera, holder, PRESETS[name], seed=img_seed)
     fname = f"img_{i:04d}.png"
-    if not cv2.imwrite(str(Path(out) / fname), r.image):
-        raise InputError(f"{out}: could not write {fname}")
-    return r.truth_dict(fname)
+    ok, png = cv2.imencode(".png", r.image)
+    if not ok:  # pragma: no cover - PNG encoding of a uint8 image does not fail
+        raise InputError(f"could not encode {fname}")
+    return r.truth_dict(fname), png.tobytes()
 
 
 def render_set(count: int, seed: int, out_dir, camera: Camera | None = None,
                holder: Holder | None = None, mix=DEFAULT_MIX, max_angle_deg: float = 10.0,
-               max_shift_mm: float = 20.0, progress=None, workers: int = 1) -> Path:
+               max_shift_mm: float = 20.0, progress=None, workers: int = 1,
+               scheduler=None) -> Path:
     """Render ``count`` images at random poses into ``out_dir`` with its ``truth.json``.
 
     The difficulty of each image is drawn from ``mix`` (preset names and weights) and recorded
     under ``"difficulty"``; image ``i`` uses the seed ``SeedSequence([seed, i])``, so any image
-    can be re-rendered alone and the set does not depend on ``workers`` (processes).
+    can be re-rendered alone and the set does not depend on where it was rendered (``workers``
+    local processes or the Dask cluster at ``scheduler``, :mod:`cutterpose.parallel`).
     ``progress(done, count)`` is called after each image. Returns the path of ``truth.json``.
     """
+    from ..parallel import run_jobs
+
     if count < 1:
         raise InputError(f"count must be >= 1, got {count}")
     camera = default_camera("table1") if camera is None else camera
@@ -770,22 +843,21 @@ def render_set(count: int, seed: int, out_dir, camera: Camera | None = None,
     p /= p.sum()
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    jobs = [(i, seed, str(out), camera, holder, names, p, max_angle_deg, max_shift_mm)
+    jobs = [(i, seed, camera, holder, names, p, max_angle_deg, max_shift_mm)
             for i in range(count)]
-    images = []
-    if workers > 1:
-        from concurrent.futures import ProcessPoolExecutor
+    written = [0]
 
-        with ProcessPoolExecutor(max_workers=workers) as ex:
-            for k, entry in enumerate(ex.map(_set_item, jobs)):
-                images.append(entry)
-                if progress is not None:
-                    progress(k + 1, count)
-    else:
-        for k, job in enumerate(jobs):
-            images.append(_set_item(job))
-            if progress is not None:
-                progress(k + 1, count)
+    def write(i, result):
+        entry, png = result
+        try:
+            (out / entry["file"]).write_bytes(png)
+        except OSError as e:
+            raise InputError(f"{out}: could not write {entry['file']} ({e})") from None
+        written[0] += 1
+        if progress is not None:
+            progress(written[0], count)
+
+    images = run_jobs(_set_item, jobs, workers, scheduler, write, store=lambda r: r[0])
     doc = {"camera": camera.to_dict(), "holder": holder.to_dict(), "seed": seed,
            "presets": {n: asdict(PRESETS[n]) for n in names}, "images": images}
     path = out / "truth.json"

@@ -71,13 +71,14 @@ from scipy.optimize import linear_sum_assignment
 from scipy.spatial.distance import cdist
 from scipy.spatial.transform import Rotation
 
-from ..errors import InputError
+from ..errors import DegenerateInputError, InputError
 from ..geometry.camera import Camera, PinholeCamera
 from ..geometry.holder import Holder
 from ..geometry.pose import rotation_from_euler_deg
 from ..geometry.working_range import MotionRange, PoseOutOfRangeError, pose_dof
 from .estimate import PoseEstimate
-from .vanishing import check_contour, initial_pose
+from .pnp.base import as_points_px
+from .vanishing import check_contour, initial_pose, initial_pose_paper
 
 __all__ = ["DistanceImage", "distance_image", "dm_score", "TemplateLibrary", "distance_match",
            "refine_continuous", "solve_dm", "solve_dm_plus", "PAPER_STEPS"]
@@ -275,16 +276,22 @@ _OFF1, _OFF2 = _offsets(1), _offsets(2)
 
 
 class _Scorer:
-    """D(p) restricted to the motion range (outside: +inf); counts evaluations."""
+    """D(p) restricted to the motion range (outside: +inf); counts evaluations. With
+    ``truncate_px`` each template point's distance is capped there (partial corner sets)."""
 
-    def __init__(self, dimg, camera, holder, motion_range):
+    def __init__(self, dimg, camera, holder, motion_range, truncate_px: float | None = None):
         self.dimg, self.camera, self.holder = dimg, camera, holder
         self.lo, self.hi = motion_range.lower, motion_range.upper
         self.n_eval = 0
+        self.truncate_px = truncate_px
 
     def __call__(self, dof: np.ndarray) -> np.ndarray:
         self.n_eval += len(dof)
-        s = dm_score(dof, self.dimg, self.camera, self.holder)
+        if self.truncate_px is None:
+            s = dm_score(dof, self.dimg, self.camera, self.holder)
+        else:
+            d = self.dimg.sample(project_templates(dof, self.camera, self.holder))
+            s = np.sqrt(np.mean(np.minimum(d, self.truncate_px) ** 2, axis=-1))
         inside = np.all((dof >= self.lo - 1e-9) & (dof <= self.hi + 1e-9), axis=1)
         return np.where(inside, s, np.inf)
 
@@ -306,16 +313,25 @@ def distance_match(points_px, camera: Camera, holder: Holder, initial,
                    motion_range: MotionRange | None = None, refine: bool = False,
                    steps=PAPER_STEPS, coarse_radius: int = 1, n_starts: int = 1,
                    library: TemplateLibrary | None = None, slack: float = 0.5,
-                   dt_mask: int = cv2.DIST_MASK_5, bilinear: bool = True) -> PoseEstimate:
+                   dt_mask: int = cv2.DIST_MASK_5, bilinear: bool = True,
+                   truncate_mm: float = 10.0, partial: bool | None = None) -> PoseEstimate:
     """Distance matching from an initial pose (module doc); ``refine=True`` gives dm+.
 
     Parameters
     ----------
     points_px : (20, 2) observed corners in contour order (unknown start and direction; the
-        order is not used here).
+        order is not used here); or any other number (>= 4) of corners: a *partial* set, some
+        of the holder's corners missing and/or spurious ones added (field images: corners
+        under slurry, points on a lump). Then the initial pose may be None, each template
+        point's distance is capped at ``truncate_mm`` (in px at the range's centre depth: a
+        missing corner costs a constant, it does not pull the pose) and dm+ pairs only model
+        and detected corners closer than that (rectangular one-to-one assignment). ``partial``
+        says which (None: a partial set if ``initial`` is None or the count is not 20; a set
+        of 20 with some missing and as many spurious needs ``partial=True``).
     camera, holder : camera model and holder geometry.
     initial : a :class:`PoseEstimate` (its ``candidates`` are all used as starts, best first,
-        up to ``n_starts``) or a pair ``(R, t_mm)``.
+        up to ``n_starts``) or a pair ``(R, t_mm)``; None: the centre of the motion range,
+        the first level scanning a 5^6 window (``coarse_radius`` 2).
     motion_range : the known range (default: the synthetic protocol's); the search stays in it.
     refine : continue with the continuous one-to-one least-squares refinement (dm+).
     steps : coarse-to-fine steps (mm and deg), the paper's by default.
@@ -337,7 +353,17 @@ def distance_match(points_px, camera: Camera, holder: Holder, initial,
     """
     t0 = time.perf_counter()
     rng = motion_range or MotionRange()
-    x = check_contour(points_px, holder)
+    x = as_points_px(points_px)
+    if partial is None:
+        partial = initial is None or len(x) != holder.n_corners
+    x = _check_partial(x, holder) if partial else check_contour(x, holder)
+    if initial is None:
+        c = np.asarray(rng.center_dof, float)
+        initial = _poses(c[None])
+        initial = (initial[0][0], initial[1][0])
+        coarse_radius = max(coarse_radius, 2)
+    truncate_px = (truncate_mm * camera.focal_px / float(rng.center_dof[5])
+                   if partial else None)
     ideal = camera.undistort_px(x)
     if not np.all(np.isfinite(ideal)):
         raise InputError("points_px lie outside the camera's valid distortion domain")
@@ -360,7 +386,7 @@ def distance_match(points_px, camera: Camera, holder: Holder, initial,
     start_dof = np.clip(start_dof[excess <= slack], rng.lower, rng.upper)
 
     dimg = distance_image(x, mask=dt_mask, bilinear=bilinear)
-    scorer = _Scorer(dimg, camera, holder, rng)
+    scorer = _Scorer(dimg, camera, holder, rng, truncate_px)
     # coarse level: a wide window (or the offline library) around every start, then 3^6
     results = []
     for c in start_dof:
@@ -385,7 +411,8 @@ def distance_match(points_px, camera: Camera, holder: Holder, initial,
     est = PoseEstimate(method="dm", R_cam_holder=R, t_cam_holder_mm=np.array(t, float),
                        residual_px=best, info=info)
     if refine:
-        est = refine_continuous(est, ideal, camera, holder, rng, slack=slack)
+        est = refine_continuous(est, ideal, camera, holder, rng, slack=slack,
+                                gate_px=truncate_px)
     est.time_ms = (time.perf_counter() - t0) * 1e3
     return est
 
@@ -448,9 +475,12 @@ def _lm_pose(R, t, P, K, target, max_iter: int = 100):
 
 def refine_continuous(est: PoseEstimate, ideal_px: np.ndarray, camera: Camera, holder: Holder,
                       motion_range: MotionRange, max_rounds: int = 10,
-                      slack: float = 0.1) -> PoseEstimate:
+                      slack: float = 0.1, gate_px: float | None = None) -> PoseEstimate:
     """dm+ (module doc): one-to-one nearest-corner assignment + least squares, repeated until
-    the assignment is stable. Returns a failure if the result leaves the motion range."""
+    the assignment is stable. Returns a failure if the result leaves the motion range.
+
+    ``gate_px`` (partial corner sets): the assignment is rectangular on distances capped at
+    the gate, and only pairs closer than the gate enter the least squares."""
     K = camera.K
     P = holder.points_holder_mm
     R, t = np.asarray(est.R_cam_holder, float), np.asarray(est.t_cam_holder_mm, float)
@@ -462,15 +492,24 @@ def refine_continuous(est: PoseEstimate, ideal_px: np.ndarray, camera: Camera, h
         uv, z = _project_ideal(R, t, P, K)
         if np.any(z <= 0):
             break
-        _, col = linear_sum_assignment(cdist(uv, ideal_px, "sqeuclidean"))
-        target = ideal_px[col]
-        if assign is not None and np.array_equal(col, assign):
+        d2 = cdist(uv, ideal_px, "sqeuclidean")
+        if gate_px is None:
+            _, col = linear_sum_assignment(d2)
+            rows = np.arange(len(P))
+        else:
+            rows, col = linear_sum_assignment(np.minimum(d2, gate_px ** 2))
+            near = d2[rows, col] < gate_px ** 2
+            rows, col = rows[near], col[near]
+            if len(rows) < 4:
+                break
+        pairs = np.column_stack([rows, col])
+        if assign is not None and np.array_equal(pairs, assign):
             break
-        assign = col
+        assign = pairs
 
-        R, t, rms = _lm_pose(R, t, P, K, target)
+        R, t, rms = _lm_pose(R, t, P[rows], K, ideal_px[col])
     info = dict(est.info, dm_plus_rounds=rounds, assignment=None if assign is None
-                else assign.tolist())
+                else (assign[:, 1].tolist() if gate_px is None else assign.tolist()))
     dof = pose_dof(R, t)
     if not np.all(np.isfinite(dof)) or motion_range.excess(dof) > slack:
         return PoseEstimate.failure("dm+", "the continuous refinement left the motion range",
@@ -479,11 +518,26 @@ def refine_continuous(est: PoseEstimate, ideal_px: np.ndarray, camera: Camera, h
                         info=info)
 
 
+def _check_partial(x: np.ndarray, holder: Holder) -> np.ndarray:
+    """A partial corner set: at least 4 finite corners, not all collinear."""
+    if not isinstance(holder, Holder):
+        raise InputError("the correspondence-free methods need a Holder (its contour), got "
+                         f"{type(holder).__name__}")
+    if len(x) < 4:
+        raise DegenerateInputError(f"need at least 4 corners of the holder, got {len(x)}")
+    sv = np.linalg.svd(x - x.mean(axis=0), compute_uv=False)
+    if sv[0] <= 0 or sv[1] / sv[0] < 1e-6:
+        raise DegenerateInputError("all corners are collinear (or coincide): the holder's "
+                                   "pose is not determined")
+    return x
+
+
 # ---- registered methods --------------------------------------------------------------------
-def _solve(points_px, camera: Camera, model: Holder, refine: bool) -> PoseEstimate:
+def _solve(points_px, camera: Camera, model: Holder, refine: bool,
+           paper_initial: bool = False) -> PoseEstimate:
     t0 = time.perf_counter()
-    name = "dm+" if refine else "dm"
-    init = initial_pose(points_px, camera, model)
+    name = "dm-paper" if paper_initial else ("dm+" if refine else "dm")
+    init = (initial_pose_paper if paper_initial else initial_pose)(points_px, camera, model)
     if not init:
         return PoseEstimate.failure(name, f"initial pose: {init.reason}", info=init.info,
                                     time_ms=(time.perf_counter() - t0) * 1e3)
@@ -497,6 +551,12 @@ def _solve(points_px, camera: Camera, model: Holder, refine: bool) -> PoseEstima
 def solve_dm(points_px, camera: Camera, model: Holder) -> PoseEstimate:
     """Registered method ``dm``: initial pose (sphere) + the paper's distance matching."""
     return _solve(points_px, camera, model, refine=False)
+
+
+def solve_dm_paper(points_px, camera: Camera, model: Holder) -> PoseEstimate:
+    """Registered method ``dm-paper``: the paper as written, its own initial pose (image-plane
+    vanishing points, section 2.2) + its distance matching (section 2.3)."""
+    return _solve(points_px, camera, model, refine=False, paper_initial=True)
 
 
 def solve_dm_plus(points_px, camera: Camera, model: Holder) -> PoseEstimate:

@@ -1,0 +1,147 @@
+"""Tracking (issue 13, item 2): predicted edges, fall-backs that say so, the filter beside the
+raw pose, approach sequences. The camera is the Table 1 camera reduced 4 times (fast); the full
+60 frames at full resolution are measured by benchmarks/track.py."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from cutterpose.cli import app
+from cutterpose.errors import InputError
+from cutterpose.geometry.camera_files import save_camera
+from cutterpose.geometry.holder import default_holder
+from cutterpose.geometry.pose import Pose, pose_errors
+from cutterpose.pipeline import measure
+from cutterpose.render.sequence import approach_poses, render_sequence
+from cutterpose.tracking import (
+    PoseFilter,
+    Tracker,
+    approach_limits,
+    approach_params,
+    se3_exp,
+    se3_log,
+)
+from test_features import small_camera
+
+CAM = small_camera()
+runner = CliRunner()
+N, DROP, JUMP = 12, 4, 8
+
+
+@pytest.fixture(scope="module")
+def sequence(tmp_path_factory):
+    d = tmp_path_factory.mktemp("approach")
+    render_sequence(d, N, 720.0, 600.0, CAM, settings="easy", seed=1, drop=(DROP,),
+                    jump_at=JUMP, jump_mm=(30.0, 0.0, 0.0))
+    save_camera(CAM, d / "cam.json")
+    return d, json.loads((d / "truth.json").read_text())
+
+
+def test_se3_exp_log_round_trip():
+    rng = np.random.default_rng(0)
+    for _ in range(50):
+        xi = np.concatenate([rng.normal(0, 0.5, 3), rng.normal(0, 50, 3)])
+        R, t = se3_exp(xi)
+        np.testing.assert_allclose(se3_log(R, t), xi, atol=1e-9)
+    # a pure translation is itself; a rotation moves the translation along V(omega)
+    R, t = se3_exp(np.array([0, 0, 0, 1.0, 2.0, 3.0]))
+    np.testing.assert_allclose(t, [1, 2, 3])
+    np.testing.assert_allclose(R, np.eye(3))
+
+
+def test_filter_follows_constant_velocity_and_resets_on_a_jump():
+    f = PoseFilter()
+    poses = [Pose.from_euler(1 + 0.1 * k, 0, 0, 0.5 * k, 0, 800 - 5 * k) for k in range(12)]
+    out = [f.update(p) for p in poses]
+    assert out[0][1] == "first pose"
+    assert all(r == "" for _, r in out[1:])
+    # constant velocity: the filter locks onto the motion
+    e = pose_errors(poses[-1].R, poses[-1].t_mm, out[-1][0].R, out[-1][0].t_mm)
+    assert e.trans_mm[0] < 0.05 and e.rot_deg[0] < 0.01
+    jumped = Pose.from_euler(2.2, 0, 0, 36.0, 0, 740)
+    z, why = f.update(jumped)
+    assert "beyond the gate" in why
+    np.testing.assert_array_equal(z.t_mm, jumped.t_mm)   # never hides the jump
+    with pytest.raises(InputError):
+        PoseFilter(alpha=0.0)
+
+
+def test_approach_poses_drop_and_jump():
+    poses, idx = approach_poses(10, 900, 600, drop=(3,), jump_at=6)
+    assert idx == [0, 1, 2, 4, 5, 6, 7, 8, 9]
+    z = [p.t_mm[2] for p in poses]
+    assert z[0] == pytest.approx(900) and z[-1] == pytest.approx(600)
+    assert poses[5].t_mm[0] - poses[4].t_mm[0] > 25   # the 30 mm jump between frames 5 and 6
+    with pytest.raises(InputError):
+        approach_poses(10, drop=(12,))
+
+
+def test_tracker_on_an_approach_with_a_dropped_frame_and_a_jump(sequence):
+    d, truth = sequence
+    tracker = Tracker(CAM, default_holder(), filter=True)
+    results, frames = [], [e["frame"] for e in truth["images"]]
+    for e in truth["images"]:
+        results.append(tracker.update(d / e["file"]))
+    modes = [r.mode for r in results]
+    assert modes[0] == "full" and "lost" not in modes
+    j = frames.index(JUMP)
+    # the jump: tracking fails, the same frame is measured in full and says why ...
+    assert modes[j] == "full" and results[j].fallback_reason
+    assert results[j].filter_reset.startswith("fall-back")
+    np.testing.assert_array_equal(results[j].filtered_pose.t_mm, results[j].pose.t_mm)
+    # ... and the next frame is tracked again
+    assert modes[j + 1] == "track"
+    assert modes.count("track") >= len(frames) - 3
+    for r, e in zip(results, truth["images"]):
+        err = pose_errors(np.array(e["R_cam_holder"]), np.array(e["t_cam_holder_mm"]),
+                          r.pose.R, r.pose.t_mm).dof[0]
+        if r.mode == "track":
+            full = measure(d / e["file"], CAM, default_holder(), "dm+", approach_params(CAM),
+                           approach_limits())
+            assert full.ok
+            # within the full measurement's 3-sigma band, per DOF
+            assert np.all(np.abs(err) <= 3 * full.std_dof + 1e-3), (e["frame"], err,
+                                                                    full.std_dof)
+            assert r.filtered_pose is not None
+
+
+def test_track_cli_json_lines(sequence):
+    d, truth = sequence
+    r = runner.invoke(app, ["track", str(d), "--camera", str(d / "cam.json"), "--json-lines",
+                            "--filter"])
+    assert r.exit_code == 0, r.output
+    lines = [json.loads(x) for x in r.stdout.splitlines() if x.startswith("{")]
+    assert [x["file"] for x in lines] == [e["file"] for e in truth["images"]]
+    assert lines[0]["mode"] == "full" and lines[1]["mode"] == "track"
+    assert all(x["pose"] is not None and x["filtered_pose"] is not None for x in lines)
+    assert "tracked" in r.stderr
+
+
+def test_track_cli_bad_source(tmp_path):
+    r = runner.invoke(app, ["track", str(tmp_path)])
+    assert r.exit_code == 2 and "no frames" in r.output
+    r = runner.invoke(app, ["render-sequence", "--out", str(tmp_path), "--engine", "nope"])
+    assert r.exit_code == 2 and "unknown render engine" in r.output
+
+
+def test_track_cli_reads_a_video(sequence, tmp_path):
+    import cv2
+
+    d, truth = sequence
+    w, h = CAM.image_size_px
+    path = tmp_path / "approach.avi"
+    vw = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 10, (w, h), False)
+    assert vw.isOpened()
+    for e in truth["images"][:3]:
+        vw.write(cv2.imread(str(d / e["file"]), cv2.IMREAD_GRAYSCALE))
+    vw.release()
+    r = runner.invoke(app, ["track", str(path), "--camera", str(d / "cam.json"),
+                            "--json-lines"])
+    assert r.exit_code == 0, r.output
+    lines = [json.loads(x) for x in r.stdout.splitlines() if x.startswith("{")]
+    assert [x["file"] for x in lines] == ["approach.avi#0", "approach.avi#1", "approach.avi#2"]
+    assert lines[0]["mode"] == "full" and lines[0]["pose"] is not None
