@@ -28,10 +28,16 @@ AUTH = {"Authorization": f"Bearer {TOKEN}"}
 TRUTH = Pose.from_euler(2.0, -3.0, 4.0, 8.0, -6.0, 612.0)
 
 
+#: hand-eye of the test cell: camera 100 mm ahead of the flange, turned 90 deg about z
+T_FLANGE_CAM = np.array([[0.0, -1, 0, 100], [1, 0, 0, 0], [0, 0, 1, 50], [0, 0, 0, 1]])
+HANDEYE = {"T_flange_cam": T_FLANGE_CAM.tolist(), "T_base_plate": np.eye(4).tolist(),
+           "covariance": np.diag([0.05 ** 2] * 3 + [1e-4 ** 2] * 3).tolist()}
+
+
 @pytest.fixture(scope="module")
 def service(tmp_path_factory):
     folder = tmp_path_factory.mktemp("svc")
-    cell = load_cell(write_cell(folder, factor=4, workers=1, max_body_mb=8),
+    cell = load_cell(write_cell(folder, factor=4, workers=1, max_body_mb=8, handeye=HANDEYE),
                      env={"CUTTERPOSE_TOKEN": TOKEN})
     img = render_holder(TRUTH, cell.camera, None, "easy", seed=7).image
     with TestClient(create_app(cell)) as client:
@@ -67,9 +73,22 @@ def test_png_measured_and_stored_as_answered(service):
     est = Pose(np.array(pose["R_cam_holder"]), np.array(pose["t_cam_holder_mm"]))
     err = est.dof - TRUTH.dof
     assert np.all(np.abs(err[:3]) < 0.5) and np.all(np.abs(err[3:]) < 2.0), err
-    assert rec["ok"] and rec["verdict"] == "grasp" and rec["verdict_basis"] == "camera_quality"
-    assert rec["robot"]["available"] is False and rec["robot"]["reason"]
     assert rec["flange_pose"][:3] == [850.0, -120.5, 1430.0]
+    # the base frame (cutterpose.robot.locate): T_base_holder = T_base_flange T_flange_cam
+    # T_cam_holder, and the verdict rests on the grasp check
+    robot = rec["robot"]
+    assert robot["available"] is True and rec["verdict_basis"] == "grasp_check"
+    T_base_flange = np.eye(4)
+    T_base_flange[:3, :3] = [[0, -1, 0], [1, 0, 0], [0, 0, 1]]  # the quaternion sent
+    T_base_flange[:3, 3] = [850.0, -120.5, 1430.0]
+    T_cam_holder = np.eye(4)
+    T_cam_holder[:3, :3], T_cam_holder[:3, 3] = pose["R_cam_holder"], pose["t_cam_holder_mm"]
+    assert np.allclose(robot["T_base_holder"], T_base_flange @ T_FLANGE_CAM @ T_cam_holder,
+                       atol=1e-5)
+    assert robot["grasp"]["verdict"] in ("grasp", "retake")
+    assert rec["verdict"] == robot["grasp"]["verdict"]
+    assert rec["ok"] == (rec["measurement"]["quality"]["ok"]
+                         and robot["grasp"]["verdict"] == "grasp")
     assert abs(np.linalg.norm(rec["flange_pose"][3:]) - 1) < 1e-12
     assert rec["image"]["width_px"] == 1028 and rec["image"]["format"] == "png"
     assert client.get(f"/v1/measurements/{rec['id']}", headers=AUTH).json() == rec
@@ -95,6 +114,12 @@ def test_raw_json_tiff_bodies_give_the_png_answer(service):
         assert r.status_code == 200, r.text
         assert r.json()["measurement"]["pose"] == ref  # same pixels, same pose
     assert js.json()["flange_pose"] == [1, 2, 3, 0, 0, 0, 1]
+    assert js.json()["robot"]["available"] is True
+    no_flange = raw.json()
+    assert no_flange["robot"] == {"available": False, "reason": "no flange pose in the request"}
+    assert no_flange["verdict_basis"] == "camera_quality"
+    assert no_flange["verdict"] == ("grasp" if no_flange["measurement"]["quality"]["ok"]
+                                    else "retake")
     jpg = _post(client, cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, 95])[1].tobytes(),
                 "image/jpeg")
     assert jpg.status_code == 200

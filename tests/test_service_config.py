@@ -1,7 +1,9 @@
 """The cell file of `cutterpose serve`: validated once at start, a bad field named (issue 12)."""
 
 import dataclasses
+import json
 
+import numpy as np
 import pytest
 
 from cutterpose.errors import CellFileError
@@ -81,8 +83,22 @@ def test_data_dir_env_wins_and_reduced_camera(tmp_path):
 def test_handeye_file_is_checked(tmp_path):
     (tmp_path / "he.json").write_text('{"T_flange_cam": [[1, 0, 0], [0, 1, 0]]}')
     (tmp_path / "cell.toml").write_text('handeye = "he.json"\n')
-    with pytest.raises(CellFileError, match="handeye.*4x4"):
+    with pytest.raises(CellFileError, match="handeye.*T_base_plate|handeye.*T_flange_cam"):
         load_cell(tmp_path / "cell.toml", env=ENV)
-    eye = [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]
-    (tmp_path / "he.json").write_text(f'{{"T_flange_cam": {eye}}}')
-    assert load_cell(tmp_path / "cell.toml", env=ENV).handeye["T_flange_cam"] == eye
+    eye = np.eye(4).tolist()
+    (tmp_path / "he.json").write_text(json.dumps(
+        {"T_flange_cam": eye, "T_base_plate": eye, "covariance": np.eye(6).tolist()}))
+    he = load_cell(tmp_path / "cell.toml", env=ENV).handeye
+    assert np.allclose(he.T_flange_cam.matrix, np.eye(4))
+
+
+def test_robot_section(tmp_path):
+    (tmp_path / "cell.toml").write_text("[robot]\naccuracy_mm = 0.1\ngrasp_tolerance_mm = 2\n")
+    c = load_cell(tmp_path / "cell.toml", env=ENV)
+    assert c.robot_accuracy.position_mm == 0.1 and c.grasp_tolerance.position_mm == 2.0
+    (tmp_path / "cell.toml").write_text("[robot]\ngrasp_tolerance_mm = -1\n")
+    with pytest.raises(CellFileError, match="robot.grasp_tolerance_mm"):
+        load_cell(tmp_path / "cell.toml", env=ENV)
+    (tmp_path / "cell.toml").write_text('chain = "magic"\n')
+    with pytest.raises(CellFileError, match="chain"):
+        load_cell(tmp_path / "cell.toml", env=ENV)

@@ -8,6 +8,7 @@ bundled Table 1 cell (``cutterpose/data/cell_table1.toml``)::
     name = "cell 1"
     camera = "camera.json"            # a camera file, or "table1" / "synthetic" (bundled)
     method = "dm+"                    # pose method (cutterpose.methods)
+    chain = "field"                   # image chain: field (default) or paper (section 2.1)
     handeye = "handeye.json"          # eye-in-hand calibration (PROTOCOL.md "Hand-eye file")
     default_holder = "default"
 
@@ -16,6 +17,12 @@ bundled Table 1 cell (``cutterpose/data/cell_table1.toml``)::
 
     [tolerances]                      # when a pose is refused (pipeline.QualityLimits fields)
     max_rms_px = 1.5
+
+    [robot]                           # the base-frame step (cutterpose.robot.locate)
+    accuracy_mm = 0.05                # robot's position error, 1 sigma per axis
+    accuracy_deg = 0.01               # robot's angle error, 1 sigma per axis
+    grasp_tolerance_mm = 1.0          # grasp verdict: 3-sigma position bound
+    grasp_tolerance_deg = 0.265       # 3-sigma angle bound (default: position / cutter radius)
 
     [service]
     data_dir = "/var/lib/cutterpose"  # SQLite database and images; CUTTERPOSE_DATA_DIR wins
@@ -43,17 +50,19 @@ import tomllib
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
+from ..calibration.handeye import HandEye, load_handeye
 from ..errors import CellFileError, CutterposeError
 from ..geometry.camera import Camera, default_camera
 from ..geometry.camera_files import load_camera
 from ..geometry.holder import Holder, default_holder, load_holder
-from ..geometry.jsonfile import read_json
+from ..image import FeatureParams
 from ..methods import get_method
 from ..pipeline import QualityLimits
+from ..robot import GraspTolerance, RobotAccuracy
 
 __all__ = ["Cell", "ServiceSettings", "load_cell", "bundled_cell_path", "TOKEN_ENV",
            "DATA_DIR_ENV"]
@@ -91,6 +100,13 @@ class _Tolerances(_Strict):
         return v
 
 
+class _Robot(_Strict):
+    accuracy_mm: float = Field(0.05, ge=0, allow_inf_nan=False)
+    accuracy_deg: float = Field(0.01, ge=0, allow_inf_nan=False)
+    grasp_tolerance_mm: Positive = 1.0
+    grasp_tolerance_deg: Positive | None = None
+
+
 class _Service(_Strict):
     data_dir: str | None = None
     workers: int = Field(0, ge=0, le=256)
@@ -105,10 +121,12 @@ class _CellFile(_Strict):
     name: str = "cell"
     camera: str = "table1"
     method: str = "dm+"
+    chain: Literal["field", "paper"] = "field"
     handeye: str | None = None
     default_holder: str = "default"
     holders: dict[str, str] = Field(default_factory=lambda: {"default": "default"})
     tolerances: _Tolerances = _Tolerances()
+    robot: _Robot = _Robot()
     service: _Service = _Service()
 
 
@@ -136,14 +154,21 @@ class Cell:
     holders: dict[str, Holder]
     default_holder: str
     method: str
+    chain: str
     limits: QualityLimits
-    handeye: dict | None
+    handeye: HandEye | None
     handeye_path: Path | None
+    robot_accuracy: RobotAccuracy
+    grasp_tolerance: GraspTolerance
     service: ServiceSettings
     token: str = field(default="", repr=False)
 
     def holder(self, name: str | None) -> Holder:
         return self.holders[name or self.default_holder]
+
+    def feature_params(self) -> FeatureParams:
+        """The image processing parameters, as ``cutterpose measure --chain`` uses them."""
+        return FeatureParams.for_camera(self.camera, chain=self.chain)
 
     def for_worker(self) -> Cell:
         """This cell without the token (what is pickled to the worker processes)."""
@@ -154,7 +179,8 @@ class Cell:
         w, h = self.camera.image_size_px
         return {"name": self.name, "camera": self.camera_source, "image_size_px": [w, h],
                 "holders": sorted(self.holders), "default_holder": self.default_holder,
-                "method": self.method, "handeye": self.handeye is not None}
+                "method": self.method, "chain": self.chain,
+                "handeye": self.handeye is not None}
 
 
 def bundled_cell_path() -> Path:
@@ -169,21 +195,6 @@ def _where(loc) -> str:
 def _resolve(base: Path, name: str) -> Path:
     p = Path(name).expanduser()
     return p if p.is_absolute() else base / p
-
-
-def _load_handeye(path: Path) -> dict:
-    d = read_json(path, CellFileError, "hand-eye file")
-    if not isinstance(d, dict) or "T_flange_cam" not in d:
-        raise CellFileError(f"{path}: hand-eye file has no \"T_flange_cam\" (PROTOCOL.md)")
-    import numpy as np
-
-    try:
-        T = np.asarray(d["T_flange_cam"], float)
-    except (TypeError, ValueError):
-        T = np.zeros(0)
-    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
-        raise CellFileError(f"{path}: \"T_flange_cam\" must be a finite 4x4 matrix")
-    return d
 
 
 def _read_token(cell_dir: Path, token_file: str | None, env: dict) -> str:
@@ -263,9 +274,15 @@ def load_cell(path: str | Path | None = None, env: dict | None = None,
                             f"[holders] ({', '.join(sorted(holders))})")
     handeye_path = _resolve(base, cf.handeye) if cf.handeye else None
     try:
-        handeye = _load_handeye(handeye_path) if handeye_path else None
+        handeye = load_handeye(handeye_path) if handeye_path else None
     except CutterposeError as e:
         raise field_error("handeye", e) from None
+    try:
+        accuracy = RobotAccuracy(cf.robot.accuracy_mm, cf.robot.accuracy_deg)
+        tolerance = GraspTolerance(cf.robot.grasp_tolerance_mm,
+                                   angle_deg=cf.robot.grasp_tolerance_deg)
+    except (CutterposeError, ValueError) as e:
+        raise field_error("robot", e) from None
     overrides = {k: v for k, v in cf.tolerances.model_dump().items() if v is not None}
     limits = QualityLimits(**overrides)
     s = cf.service
@@ -284,5 +301,6 @@ def load_cell(path: str | Path | None = None, env: dict | None = None,
             raise CellFileError(f"{path}: {e}") from None
     return Cell(path=path, name=cf.name, camera=camera, camera_source=cf.camera,
                 holders=holders, default_holder=cf.default_holder, method=cf.method,
-                limits=limits, handeye=handeye, handeye_path=handeye_path, service=service,
+                chain=cf.chain, limits=limits, handeye=handeye, handeye_path=handeye_path,
+                robot_accuracy=accuracy, grasp_tolerance=tolerance, service=service,
                 token=token)

@@ -127,7 +127,7 @@ def init_worker(cell: Cell) -> Cell:
     w, h = cell.camera.image_size_px
     try:
         measure(np.zeros((h, w), np.uint8), cell.camera, cell.holder(None), cell.method,
-                limits=cell.limits)
+                params=cell.feature_params(), limits=cell.limits)
     except ImageError:
         pass  # a black image is refused: expected, the point was the imports
     return cell
@@ -153,9 +153,11 @@ def measure_job(cell: Cell, data: bytes, fmt: str, size_px, holder: str | None,
     t0 = time.perf_counter()
     img = decode_image(data, fmt, size_px, tuple(cell.camera.image_size_px))
     t1 = time.perf_counter()
-    m = measure(img, cell.camera, cell.holder(holder), cell.method, limits=cell.limits)
+    hol = cell.holder(holder)
+    m = measure(img, cell.camera, hol, cell.method, params=cell.feature_params(),
+                limits=cell.limits)
     t2 = time.perf_counter()
-    return {"measurement": m.to_dict(), "robot": robot_frame(m, cell.handeye, flange_row),
+    return {"measurement": m.to_dict(), "robot": robot_frame(m, cell, hol, flange_row),
             "image": {"width_px": int(img.shape[1]), "height_px": int(img.shape[0])},
             "worker": {"pid": os.getpid(), "decode_ms": round((t1 - t0) * 1e3, 3),
                        "measure_ms": round((t2 - t1) * 1e3, 3)}}
@@ -173,7 +175,8 @@ def overlay_job(cell: Cell, path: str, fmt: str, size_px, holder: str | None,
         data = f.read()
     img = decode_image(data, fmt, size_px, tuple(cell.camera.image_size_px))
     hol = cell.holder(holder)
-    m = measure(img, cell.camera, hol, cell.method, limits=cell.limits)
+    m = measure(img, cell.camera, hol, cell.method, params=cell.feature_params(),
+                limits=cell.limits)
     ok, buf = cv2.imencode(".png", draw_overlay(img, m, cell.camera, hol, width_px))
     if not ok:  # pragma: no cover - PNG encoding of a valid BGR image
         raise ImageError("could not encode the overlay")

@@ -44,9 +44,11 @@ def reduced_camera_dict(factor: int = 4) -> dict:
                 "principal_point_px": [(cx + 0.5) / factor - 0.5, (cy + 0.5) / factor - 0.5]}
 
 
-def write_cell(folder, factor: int = 4, token: str | None = None, **service) -> Path:
+def write_cell(folder, factor: int = 4, token: str | None = None, handeye: dict | None = None,
+               **service) -> Path:
     """A cell file in ``folder`` with the camera binned by ``factor`` (1: the bundled Table 1
-    camera), data in ``folder/data``, and ``service`` settings; with ``token`` a token file."""
+    camera), data in ``folder/data``, and ``service`` settings; with ``token`` a token file,
+    with ``handeye`` (a hand-eye object, PROTOCOL.md) a hand-eye file."""
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     camera = "table1"
@@ -57,7 +59,11 @@ def write_cell(folder, factor: int = 4, token: str | None = None, **service) -> 
     if token is not None:
         (folder / "token.txt").write_text(token + "\n")
         service["token_file"] = "token.txt"
-    lines = [f'name = "test cell, factor {factor}"', f'camera = "{camera}"', "", "[service]"]
+    lines = [f'name = "test cell, factor {factor}"', f'camera = "{camera}"']
+    if handeye is not None:
+        (folder / "handeye.json").write_text(json.dumps(handeye))
+        lines.append('handeye = "handeye.json"')
+    lines += ["", "[service]"]
     lines += [f"{k} = {json.dumps(v)}" for k, v in service.items()]
     path = folder / "cell.toml"
     path.write_text("\n".join(lines) + "\n")

@@ -148,15 +148,26 @@ class MeasurementOut(_Open):
 
 
 class RobotOut(_Open):
-    """The base-frame step (PROTOCOL.md "Measurement JSON"); ``available`` is false without a
-    flange pose, without a hand-eye file, or before issue 11's step is in the build."""
+    """The base-frame step (cutterpose.robot.locate; PROTOCOL.md "Measurement JSON");
+    ``available`` is false without a flange pose in the request or a hand-eye file in the
+    cell. The other fields are those of ``RobotResult.to_dict()`` (``poses_ros``: every pose in
+    ROS form, m and quaternion, with its 6x6 covariance)."""
 
     available: bool
     reason: str = Field("", description="Why it is not available.")
-    T_base_holder: list[list[float]] | None = Field(None, description="4x4, mm.")
-    T_base_grasp: list[list[float]] | None = Field(None, description="4x4, mm.")
-    grasp: dict | None = Field(None, description="verdict (grasp | retake), reason, "
-                               "position_3sigma_mm, angle_3sigma_deg.")
+    T_base_flange: list[list[float]] | None = Field(None, description="4x4, mm: the flange "
+                                                    "pose sent.")
+    T_flange_cam: list[list[float]] | None = Field(None, description="4x4, mm: the hand-eye "
+                                                   "calibration.")
+    T_base_holder: list[list[float]] | None = Field(None, description="4x4, mm: the holder "
+                                                    "in the robot's base frame (null when the "
+                                                    "measurement has no pose).")
+    T_base_grasp: list[list[float]] | None = Field(None, description="4x4, mm: where the "
+                                                   "gripper's TCP must be to take the cutter.")
+    grasp: dict | None = Field(None, description="verdict (grasp | retake), reason, hint, "
+                               "position_3sigma_mm, angle_3sigma_deg, position_tolerance_mm, "
+                               "angle_tolerance_deg, error_shares (measurement, hand-eye, "
+                               "robot).")
 
 
 class ImageOut(_Model):

@@ -1,61 +1,46 @@
 """The robot-frame step of a measurement: the holder and grasp frames in the robot's base frame
-and the grasp verdict, from the camera-frame measurement, the cell's hand-eye file and the
-flange pose sent with the request.
+and the grasp verdict (:func:`cutterpose.robot.locate`, issue 11), from the camera-frame
+measurement, the cell's hand-eye file and the flange pose sent with the request.
 
-That step belongs to :mod:`cutterpose.robot` (issue 11). Until it is on main, :data:`ENABLED`
-is False and :func:`robot_frame` answers ``available: false`` with the reason, so the answer's
-camera-frame pose and ``quality`` stand in (PROTOCOL.md "Measurement JSON"). Switching it on is
-this one function.
+Without a flange pose or without a hand-eye file in the cell there is no base frame: the answer
+says why (``available: false``), and the camera-frame pose and ``quality`` stand in
+(PROTOCOL.md "Measurement JSON").
 
 Convention:
-    ``T_base_flange`` (4x4, mm) maps flange to base coordinates (PROTOCOL.md "Robot cell");
-    the answer's ``T_base_holder`` / ``T_base_grasp`` likewise.
+    ``T_base_flange`` (mm) maps flange to base coordinates (PROTOCOL.md "Robot cell"), sent as
+    the pose row ``x_mm,y_mm,z_mm,qx,qy,qz,qw``; the answer's ``T_base_holder`` /
+    ``T_base_grasp`` likewise (4x4, mm); covariances as in :mod:`cutterpose.robot.frames`.
 """
 
 from __future__ import annotations
 
-import numpy as np
-
-__all__ = ["ENABLED", "robot_frame", "flange_matrix"]
-
-#: True once cutterpose.robot (issue 11) provides the base-frame pose and grasp verdict
-ENABLED = False
+__all__ = ["robot_frame"]
 
 
-def flange_matrix(row) -> np.ndarray:
-    """``T_base_flange`` (4x4, mm) from a PROTOCOL pose row ``x_mm,y_mm,z_mm,qx,qy,qz,qw``
-    (unit quaternion, scalar last; already checked by the request model)."""
-    from scipy.spatial.transform import Rotation
-
-    r = np.asarray(row, float)
-    T = np.eye(4)
-    T[:3, :3] = Rotation.from_quat(r[3:7]).as_matrix()  # scipy's order is scalar-last too
-    T[:3, 3] = r[:3]
-    return T
-
-
-def robot_frame(measurement, handeye: dict | None, flange_row) -> dict:
+def robot_frame(measurement, cell, holder, flange_row) -> dict:
     """The ``robot`` object of the service's answer.
 
     Parameters
     ----------
     measurement : the :class:`cutterpose.pipeline.Measurement` (camera frame).
-    handeye : the cell's hand-eye file (``None`` when the cell names none).
-    flange_row : the request's flange pose as a PROTOCOL row, or ``None``.
+    cell : the :class:`~cutterpose.service.config.Cell` (hand-eye, robot accuracy, grasp
+        tolerance, camera).
+    holder : the holder model measured.
+    flange_row : the request's flange pose as a PROTOCOL row (7 numbers), or ``None``.
 
     Returns
     -------
-    dict : ``{"available": bool, "reason": str}``, and when available ``T_base_holder``,
-        ``T_base_grasp`` (4x4, mm) and ``grasp`` (PROTOCOL.md "Measurement JSON").
+    dict : ``{"available": bool, "reason": str}``, and when available the fields of
+        :meth:`cutterpose.robot.RobotResult.to_dict` (``T_base_holder``, ``T_base_grasp``,
+        ``grasp`` with the verdict, ...).
     """
     if flange_row is None:
         return {"available": False, "reason": "no flange pose in the request"}
-    if handeye is None:
+    if cell.handeye is None:
         return {"available": False, "reason": "the cell file names no hand-eye file"}
-    if not ENABLED:
-        return {"available": False,
-                "reason": "base-frame step not in this build yet (issue 11): use the "
-                          "camera-frame pose and quality"}
-    if measurement.pose is None:  # pragma: no cover - switched on with issue 11
-        return {"available": False, "reason": "no camera-frame pose"}
-    raise NotImplementedError  # pragma: no cover - replaced by the cutterpose.robot call
+    from ..robot import locate, parse_pose_row
+
+    T_base_flange = parse_pose_row(",".join(repr(float(x)) for x in flange_row))
+    res = locate(measurement, cell.handeye, T_base_flange, cell.robot_accuracy,
+                 camera=cell.camera, holder=holder, tolerance=cell.grasp_tolerance)
+    return {"available": True, "reason": ""} | res.to_dict()
