@@ -198,6 +198,7 @@ def test_killed_worker_fails_its_request_only(server, images):
             break
     assert hit is not None, "the worker was never caught busy"
     pid, r = hit
+    print(f"\nworker {pid} killed on attempt {attempt + 1}: {r.status_code} {r.json()}")
     assert r.status_code == 500
     assert r.json()["error"] == "worker_crashed" and str(pid) in r.json()["message"]
     for img in images[:3]:
@@ -261,6 +262,7 @@ def test_sigkill_and_restart_loses_no_answer(tmp_path, images):
         for f in futs:
             f.result()
     assert 12 <= len(answered) < 60
+    print(f"\nSIGKILL after {len(answered)} of 60 answered")
     assert s.reap_workers() == []        # the workers exit when the service is killed
     stored = _db_records(tmp_path)       # integrity_check ok
     assert all(stored[rid] == (a["id"], a) for rid, a in answered.items())
