@@ -1,8 +1,12 @@
 """Speed benchmark: median time per solve of every method, as a ratio to OpenCV's SQPnP measured
-in the same run, and the time of `measure` on a full 4112 x 3008 image, per stage.
+in the same run, and the time of `measure` on a full 4112 x 3008 image (from memory and from
+its PNG file), per stage, as ratios to a naive OpenCV chain and to SQPnP timed in the same run
+(issue 13: <= 50 ms from memory, <= 130 ms with the PNG decode, one core).
 
 Runs on one core (BLAS and OpenCV threads pinned to 1), so the figures compare with the issues'
-single-core targets. Usage: ``make bench`` or ``python benchmarks/bench.py [--trials N]``.
+single-core targets. Usage: ``make bench`` or ``python benchmarks/bench.py [--trials N]
+[--skip-solvers] [--images SET_DIR ...]``. On a shared machine absolute times drift: the ratios
+and the CPU times are the figures to compare.
 """
 
 from __future__ import annotations
@@ -130,7 +134,8 @@ def naive_chain(img, cam, holder):
 
 
 def _images(folder, count):
-    """Up to ``count`` images of an image set (truth.json order) as 8-bit grey arrays."""
+    """Up to ``count`` images of an image set (truth.json order) as 8-bit grey arrays, with
+    their paths."""
     import json
     from pathlib import Path
 
@@ -139,58 +144,138 @@ def _images(folder, count):
 
     doc = json.loads((Path(folder) / "truth.json").read_text())
     cam = camera_from_dict(doc["camera"])
-    return cam, [load_image(Path(folder) / e["file"]) for e in doc["images"][:count]]
+    paths = [Path(folder) / e["file"] for e in doc["images"][:count]]
+    return cam, [load_image(p) for p in paths], paths
 
 
-def bench_measure(repeats: int = 5, image_sets: tuple = (), per_set: int = 20) -> None:
+def _sqpnp_ref(cam, holder):
+    """The solver reference of the speed ratios: SQPnP on 20 corners at 1 px (one input)."""
+    tr = generate_trials(1, 1.0, seed=11)
+    P = holder.points_holder_mm.reshape(-1, 1, 3)
+    x = tr.points_px[0].reshape(-1, 1, 2)
+    K = tr.camera.K
+
+    def ref():
+        return cv2.solvePnP(P, x, K, None, flags=cv2.SOLVEPNP_SQPNP)
+
+    return ref
+
+
+def _time_image(img, path, cam, holder, repeats, sqpnp):
+    """Fastest of ``repeats`` interleaved runs of: ``measure`` from memory (wall and CPU
+    time), ``measure`` of the PNG file (decode included), the naive chain and SQPnP; with the
+    stage times of the fastest run and the verdict. Interleaving puts all under the same
+    machine conditions; the minimum filters out the other jobs of a shared machine."""
+    from cutterpose.pipeline import measure
+
+    best = {"wall": np.inf, "cpu": np.inf, "png": np.inf, "naive": np.inf, "sqpnp": np.inf}
+    stages, ok = {}, False
+    for _ in range(repeats):
+        c0, t0 = time.process_time(), time.perf_counter()
+        try:
+            m = measure(img, cam, holder)
+        except Exception:  # noqa: BLE001 - a refused image still took its time
+            m = None
+        t1, c1 = time.perf_counter(), time.process_time()
+        if t1 - t0 < best["wall"]:
+            stages = dict(getattr(m, "timings_ms", None) or {})
+            ok = bool(m is not None and m.ok)
+        best["wall"] = min(best["wall"], t1 - t0)
+        best["cpu"] = min(best["cpu"], c1 - c0)
+        if path is not None:
+            t2 = time.perf_counter()
+            try:
+                measure(path, cam, holder)
+            except Exception:  # noqa: BLE001
+                pass
+            best["png"] = min(best["png"], time.perf_counter() - t2)
+        c3, t3 = time.process_time(), time.perf_counter()
+        naive_chain(img, cam, holder)
+        t4, c4 = time.perf_counter(), time.process_time()
+        sqpnp()
+        t5 = time.perf_counter()
+        best["naive"] = min(best["naive"], t4 - t3)
+        best["naive_cpu"] = min(best.get("naive_cpu", np.inf), c4 - c3)
+        best["sqpnp"] = min(best["sqpnp"], t5 - t4)
+    return {k: 1e3 * v for k, v in best.items()}, stages, ok
+
+
+TARGET_MS, TARGET_PNG_MS = 50.0, 130.0   # issue 13: one core, from memory / with the decode
+
+
+def _report(label, rows):
+    med = {k: float(np.median([r[k] for r in rows])) for k in rows[0]}
+    verdict = "ok" if med["wall"] <= TARGET_MS else "SLOWER THAN TARGET"
+    png = (f"; from the PNG file {med['png']:.1f} ms (target {TARGET_PNG_MS:.0f}: "
+           f"{'ok' if med['png'] <= TARGET_PNG_MS else 'SLOWER THAN TARGET'})"
+           if np.isfinite(med["png"]) else "")
+    print(f"measure on {label}: median {med['wall']:.1f} ms wall, {med['cpu']:.1f} ms CPU "
+          f"(target {TARGET_MS:.0f} ms: {verdict}){png}\n"
+          f"  = x {med['wall'] / med['naive']:.1f} the naive OpenCV chain ({med['naive']:.2f} ms;"
+          f" CPU: x {med['cpu'] / med['naive_cpu']:.1f} its {med['naive_cpu']:.2f} ms), "
+          f"x {med['wall'] / med['sqpnp']:.0f} SQPnP ({1e3 * med['sqpnp']:.1f} us)")
+    return med
+
+
+def _field_images(count: int, cam, holder, seed: int = 13):
+    """``count`` rendered images of the ``field`` preset (bright cutter, flush surround, slurry
+    lumps over edges and a corner) at random poses of the real rig's range, in memory."""
+    from cutterpose.render.analytic import random_pose, render_holder
+
+    rng = np.random.default_rng(seed)
+    return [render_holder(random_pose(rng), cam, holder, "field", seed=seed + k).image
+            for k in range(count)]
+
+
+def _time_set(label, cam, holder, imgs, paths, repeats, sqpnp):
+    from cutterpose.pipeline import measure
+
+    rows, accepted = [], 0
+    measure(imgs[0], cam, holder)
+    for im, p in zip(imgs, paths):
+        r, _, ok = _time_image(im, p, cam, holder, max(3, repeats // 2), sqpnp)
+        rows.append(r)
+        accepted += ok
+    med = _report(f"{len(imgs)} {label}", rows)
+    print(f"  p90 {np.percentile([r['wall'] for r in rows], 90):.1f} ms wall; "
+          f"{accepted} of {len(imgs)} accepted (median {med['cpu']:.1f} ms CPU)")
+
+
+def bench_measure(repeats: int = 7, image_sets: tuple = (), per_set: int = 20,
+                  field_images: int = 0) -> None:
     try:
         from cutterpose.pipeline import measure
         from cutterpose.render.analytic import render_holder
     except ImportError as e:
         print(f"\nmeasure: not available ({e})")
         return
+    import tempfile
+    from pathlib import Path
+
     from cutterpose.geometry.camera import default_camera
     from cutterpose.geometry.pose import Pose
 
     cam = default_camera("table1")
     holder = default_holder()
+    sqpnp = _sqpnp_ref(cam, holder)
     img = render_holder(Pose.from_euler(3, -4, 2, 5, -8, 610), cam, holder, seed=1).image
-    measure(img, cam, holder)  # warm-up
-    totals, naive, stages = [], [], {}
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        res = measure(img, cam, holder)
-        t1 = time.perf_counter()
-        naive_chain(img, cam, holder)
-        naive.append(1e3 * (time.perf_counter() - t1))
-        totals.append(1e3 * (t1 - t0))
-        for k, v in (getattr(res, "timings_ms", None) or {}).items():
-            stages.setdefault(k, []).append(v)
-    med, ref = float(np.median(totals)), float(np.median(naive))
-    verdict = "ok" if med < 300 else "SLOWER THAN TARGET"
-    print(f"\nmeasure on a {img.shape[1]} x {img.shape[0]} image: median {med:.1f} ms over "
-          f"{repeats} runs (target 300 ms): {verdict}; naive OpenCV chain {ref:.1f} ms "
-          f"(x {med / ref:.1f})")
-    for k, v in stages.items():
-        print(f"  {k:24s} {np.median(v):8.1f} ms")
+    measure(img, cam, holder)  # warm-up: imports, cached templates and spectra
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "bench.png"
+        cv2.imwrite(str(path), img)
+        row, stages, _ = _time_image(img, path, cam, holder, repeats, sqpnp)
+    print(f"\nfastest of {repeats} interleaved runs per image (measure, measure of the PNG, "
+          "naive chain, SQPnP), one thread; medians over images")
+    _report(f"a {img.shape[1]} x {img.shape[0]} image", [row])
+    print("  stages of the fastest run (ms): " + ", ".join(
+        f"{k} {v:.1f}" for k, v in stages.items()))
+    if field_images:
+        imgs = _field_images(field_images, cam, holder)
+        _time_set("rendered field-preset images (seeds 13..)", cam, holder, imgs,
+                  [None] * len(imgs), repeats, sqpnp)
     for folder in image_sets:
-        scam, imgs = _images(folder, per_set)
-        times, naive, accepted = [], [], 0
-        for im in imgs:
-            t0 = time.perf_counter()
-            try:
-                accepted += bool(measure(im, scam, holder).ok)
-            except Exception:  # noqa: BLE001 - a refused image still took its time
-                pass
-            t1 = time.perf_counter()
-            naive_chain(im, scam, holder)
-            naive.append(1e3 * (time.perf_counter() - t1))
-            times.append(1e3 * (t1 - t0))
-        med, ref = float(np.median(times)), float(np.median(naive))
-        print(f"measure on {len(imgs)} images of {folder}: median {med:.1f} ms, p90 "
-              f"{np.percentile(times, 90):.1f} ms (target 300 ms: "
-              f"{'ok' if med < 300 else 'SLOWER THAN TARGET'}); naive chain {ref:.1f} ms "
-              f"(x {med / ref:.1f}); {accepted} accepted")
+        scam, imgs, paths = _images(folder, per_set)
+        _time_set(f"images of {folder}", scam, holder, imgs, paths, repeats, sqpnp)
 
 
 def main() -> None:
@@ -201,11 +286,17 @@ def main() -> None:
     ap.add_argument("--images", action="append", default=[],
                     help="an image set (folder with truth.json) to time measure on; repeatable")
     ap.add_argument("--per-set", type=int, default=20, help="images per set")
+    ap.add_argument("--field-images", type=int, default=None,
+                    help="render this many field-preset images to time measure on (default "
+                         "20 without --images, else 0)")
     a = ap.parse_args()
+    if a.field_images is None:
+        a.field_images = 0 if a.images else 20
     if not a.skip_solvers:
         bench_solvers(a.trials)
     if not a.skip_measure:
-        bench_measure(image_sets=tuple(a.images), per_set=a.per_set)
+        bench_measure(image_sets=tuple(a.images), per_set=a.per_set,
+                      field_images=a.field_images)
     peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     print(f"\npeak resident memory of this run: {peak_mb:.0f} MB")
 

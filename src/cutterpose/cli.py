@@ -114,7 +114,8 @@ def render_cmd(
     out: str = typer.Option(..., "--out", help="Output image (.png)."),
     pose: str = typer.Option("0,0,0,0,0,600", help="alpha,beta,gamma [deg],X,Y,Z [mm] of the "
                              "holder in the camera frame."),
-    preset: str = typer.Option("easy", help="easy, dim, worn, occluded, blurred or hard."),
+    preset: str = typer.Option(None, help="analytic: easy (default), dim, worn, occluded, "
+                               "blurred or hard; pbr: sharp, new (default) or worn."),
     seed: int = typer.Option(0, help="Seed of textures, occluders and noise."),
     camera: str = typer.Option(None, help="table1 (default), synthetic, or a camera file."),
     holder: str = typer.Option(None, help="Holder JSON file (default: the bundled holder)."),
@@ -129,14 +130,17 @@ def render_cmd(
     holder_base_pose: str = typer.Option(None, "--holder-base-pose", help="Robot cell: the "
                                          "holder in the base frame, x_mm,y_mm,z_mm,qx,qy,qz,"
                                          "qw or a one-row pose file."),
+    engine: str = typer.Option("analytic", help="analytic (closed-form ray casting) or pbr "
+                               "(Mitsuba 3 path tracing of field conditions; extra [field])."),
+    spp: int = typer.Option(None, min=1, help="pbr: samples per pixel (preset: 12)."),
+    variant: str = typer.Option(None, help="pbr: Mitsuba variant (default: llvm_ad_mono if "
+                                "it works here, else scalar_rgb)."),
 ):
     """Render one realistic image of the holder at a pose (camera frame), or as the camera on
     a robot's flange sees a holder at a known base-frame pose."""
     from .errors import InputError
     from .geometry.holder import load_holder
     from .geometry.pose import Pose
-    from .render.analytic import preset as get_preset
-    from .render.analytic import render_holder, save_rendered
 
     cell = (flange_pose, handeye, holder_base_pose)
     if any(v is not None for v in cell):
@@ -161,6 +165,25 @@ def render_cmd(
                              f"Z; got {pose!r}")
         T_ch = Pose.from_euler(*dof)
     cam = _render_camera(camera)
+    if engine == "pbr":
+        from .render.pbr import field_preset, render_field, save_field_rendered
+
+        fp = field_preset(preset or "new")
+        if pocket_depth is not None:
+            fp = fp.with_(pocket_depth_mm=pocket_depth)
+        r = render_field(T_ch, cam, load_holder(holder) if holder else None,
+                         fp, seed=seed, variant=variant, spp=spp)
+        path = save_field_rendered(r, out, cam, truth=truth)
+        log(f"pbr {r.variant}, {r.spp} spp: {r.timings_s['total']:.1f} s "
+            f"(render {r.timings_s['render_crop'] + r.timings_s['render_background']:.1f} s)")
+        typer.echo(f"wrote {path}" + (f" and {path.with_suffix('.truth.json')}" if truth else ""))
+        return
+    if engine != "analytic":
+        raise InputError(f"--engine must be 'analytic' or 'pbr', got {engine!r}")
+    from .render.analytic import preset as get_preset
+    from .render.analytic import render_holder, save_rendered
+
+    preset = preset or "easy"
     settings = get_preset(preset)
     if pocket_depth is not None:
         settings = settings.with_(pocket_depth_mm=pocket_depth)
@@ -187,16 +210,42 @@ def render_set_cmd(
     count: int = typer.Option(100, min=1, help="Number of images."),
     seed: int = typer.Option(0, help="Seed of the poses, difficulties and images."),
     camera: str = typer.Option(None, help="table1 (default), synthetic, or a camera file."),
-    preset: str = typer.Option(None, help="Use this preset for every image (default: a mix "
-                               "of easy, dim, worn, occluded, blurred, hard)."),
+    preset: str = typer.Option(None, help="Use this preset for every image (analytic default: "
+                               "a mix of easy, dim, worn, occluded, blurred, hard; pbr: sharp, "
+                               "new (default) or worn)."),
     workers: int = typer.Option(1, min=1, help="Worker processes (the set does not change)."),
     scheduler: str = typer.Option(None, "--scheduler", help="Run on the Dask distributed "
                                   "cluster at this address (tcp://host:8786) instead of local "
                                   "processes; needs cutterpose[cluster]."),
+    engine: str = typer.Option("analytic", help="analytic or pbr (Mitsuba 3; extra [field])."),
+    spp: int = typer.Option(None, min=1, help="pbr: samples per pixel (preset: 12)."),
+    variant: str = typer.Option(None, help="pbr: Mitsuba variant."),
+    resume: bool = typer.Option(False, "--resume", help="pbr: keep the images of an "
+                                "interrupted run of the same set and render the rest."),
 ):
     """Render an image set with its truth.json (PROTOCOL.md, exchange formats)."""
     from rich.progress import Progress
 
+    if engine == "pbr":
+        from .render.pbr import field_preset, render_field_set
+
+        if scheduler is not None or workers > 1:
+            fail("--engine pbr renders in one process (Mitsuba uses every core itself); "
+                 "drop --workers / --scheduler")
+
+        fp = field_preset(preset or "new")
+        cam = _render_camera(camera)
+        with Progress(transient=True, console=None) as bar:
+            task = bar.add_task(f"rendering ({fp.name}, pbr)", total=count)
+            path = render_field_set(count, seed, out, fp, cam, variant=variant, spp=spp,
+                                    progress=lambda done, n: bar.update(task, completed=done),
+                                    resume=resume)
+        typer.echo(f"wrote {count} images and {path}")
+        return
+    if engine != "analytic":
+        from .errors import InputError
+
+        raise InputError(f"--engine must be 'analytic' or 'pbr', got {engine!r}")
     from .render.analytic import DEFAULT_MIX, render_set
     from .render.analytic import preset as get_preset
 

@@ -293,6 +293,27 @@ def _pose_from_homography(H: np.ndarray, camera: Camera):
     return (R, t) if np.all(np.isfinite(R)) and t[2] > 0 else None
 
 
+def _dm_plus_close(corners_px: np.ndarray, camera: Camera, holder: Holder,
+                   limits: QualityLimits, H: np.ndarray, complete: bool) -> PoseEstimate:
+    """dm+ straight from the pose of the field chain's outline homography (issue 13): its
+    continuous refinement without DM's grid search, which only serves to bring a far start
+    into the refinement's basin (:func:`~cutterpose.solvers.matching.refine_from_close_start`;
+    same fixpoint). A failure (start not close enough) sends the caller to the full dm+."""
+    from .solvers import matching
+
+    t0 = time.perf_counter()
+    init = _pose_from_homography(H, camera)
+    if init is None:
+        return PoseEstimate.failure("dm+", "no pose from the outline homography")
+    rng = MotionRange(center_dof=limits.range_center_dof,
+                      half_width_dof=limits.range_half_width_dof)
+    est = matching.refine_from_close_start(corners_px, camera, holder, init, motion_range=rng,
+                                           partial=not complete, max_rms_px=limits.max_rms_px)
+    est.method = "dm+"
+    est.time_ms = (time.perf_counter() - t0) * 1e3
+    return est
+
+
 def _solve(method: str, corners_px: np.ndarray, camera: Camera, holder: Holder,
            limits: QualityLimits, order: str = "contour", H=None) -> PoseEstimate:
     """``corners_px``: all 20 in contour order, or (``order="holder"``, field chain) 20 in model
@@ -302,6 +323,10 @@ def _solve(method: str, corners_px: np.ndarray, camera: Camera, holder: Holder,
     m = get_method(method)
     corners_px = np.asarray(corners_px, float)
     seen = np.isfinite(corners_px).all(axis=1)
+    if method == "dm+" and order == "holder" and H is not None:
+        est = _dm_plus_close(corners_px[seen], camera, holder, limits, H, seen.all())
+        if est:
+            return est
     if order == "holder" and not seen.all():
         if m.needs_correspondences:
             return m.solve(corners_px[seen], camera, holder.points_holder_mm[seen])

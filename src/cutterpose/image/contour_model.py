@@ -16,13 +16,20 @@ from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
-from scipy.ndimage import gaussian_filter1d
 
 from ..errors import FeatureError
 from ..geometry.camera import Camera
 from ..geometry.holder import Holder
 from ..geometry.pose import Pose
-from .edges import MAD_TO_SIGMA, line_from, mad_scale, sample_profiles, tukey_weights
+from .edges import (
+    MAD_TO_SIGMA,
+    line_from,
+    mad_scale,
+    median_rows,
+    sample_profiles,
+    smooth_rows,
+    tukey_weights,
+)
 from .params import Segment, signed_area, where_px
 
 if TYPE_CHECKING:
@@ -51,16 +58,22 @@ def _moments(p: np.ndarray):
     return abs(m["m00"]), c, theta
 
 
-def _fit_h_lines(model_lines, pts, w):
-    """Homography H (plane -> image) with each image point ``pts[i]`` on the plane line
-    ``model_lines[i]``: ``l^T H^-1 p = 0`` is linear in ``G = H^-1``; weighted SVD on
-    normalised pixels."""
+def _h_line_system(model_lines, pts):
+    """The unweighted rows of :func:`_fit_h_lines` (one per point) and the normalisation
+    ``T``: fixed while only the weights change (IRLS)."""
     c = pts.mean(axis=0)
     s = np.sqrt(2) / max(np.sqrt(((pts - c) ** 2).sum(axis=1)).mean(), 1e-9)
     T = np.array([[s, 0, -s * c[0]], [0, s, -s * c[1]], [0, 0, 1.0]])
     ph = np.column_stack([(pts - c) * s, np.ones(len(pts))])
-    A = (model_lines[:, :, None] * ph[:, None, :]).reshape(len(pts), 9) * w[:, None]
-    _, v = np.linalg.eigh(A.T @ A)  # 9 x 9: much cheaper than the SVD of A
+    return (model_lines[:, :, None] * ph[:, None, :]).reshape(len(pts), 9), T
+
+
+def _fit_h_lines(model_lines, pts, w, system=None):
+    """Homography H (plane -> image) with each image point ``pts[i]`` on the plane line
+    ``model_lines[i]``: ``l^T H^-1 p = 0`` is linear in ``G = H^-1``; weighted SVD on
+    normalised pixels. ``system``: :func:`_h_line_system` of the same points, if known."""
+    A, T = system if system is not None else _h_line_system(model_lines, pts)
+    _, v = np.linalg.eigh((A * (w * w)[:, None]).T @ A)  # 9 x 9: cheaper than A's SVD
     G = v[:, 0].reshape(3, 3) @ T
     H = np.linalg.inv(G)
     return H / H[2, 2]
@@ -205,11 +218,16 @@ def check_edge_support(lines, edges, spans, camera, params):
 
 # ------------------------------------------------------------------------------------------
 # field chain (issue 10): the outline found on the gradient, robustly
-def _line_distances_px(H: np.ndarray, plane_lines: np.ndarray, pts: np.ndarray) -> np.ndarray:
-    """Signed distance (ideal px) of image points to the images ``H^-T l`` of plane lines."""
+def _line_distances_px(H: np.ndarray, plane_lines: np.ndarray, pts: np.ndarray,
+                       which: np.ndarray | None = None) -> np.ndarray:
+    """Signed distance (ideal px) of image points to the images ``H^-T l`` of plane lines
+    (``pts[i]`` to line ``plane_lines[i]``, or to ``plane_lines[which[i]]``: each distinct
+    line mapped once)."""
     Li = plane_lines @ np.linalg.inv(H)  # rows: image lines l^T H^-1
     Li = Li / np.linalg.norm(Li[:, :2], axis=1, keepdims=True)
-    return (Li[:, :2] * pts).sum(axis=1) + Li[:, 2]
+    if which is not None:
+        Li = Li[which]
+    return Li[:, 0] * pts[:, 0] + Li[:, 1] * pts[:, 1] + Li[:, 2]
 
 
 def search_outline(img: np.ndarray, roi_origin, camera: Camera, holder: Holder,
@@ -244,27 +262,27 @@ def search_outline(img: np.ndarray, roi_origin, camera: Camera, holder: Holder,
         nxt = np.roll(C, -1, axis=0)
         step = 1.0 if W >= 10 else 0.5
         offsets = np.arange(-W, W + 1e-9, step)
-        bases, normals, which = [], [], []
-        for k in range(n):
-            a, b = C[k], nxt[k]
-            length = float(np.linalg.norm(b - a))
-            d = (b - a) / max(length, 1e-9)
-            ts = np.arange(params.corner_trim_px, length - params.corner_trim_px + 1e-9,
-                           params.search_step_px)
-            bases.append(a + ts[:, None] * d)
-            normals.append(np.broadcast_to(-sign * np.array([-d[1], d[0]]), (len(ts), 2)))
-            which.append(np.full(len(ts), k))
-        base, n_out, which = np.vstack(bases), np.vstack(normals), np.concatenate(which)
+        length = np.linalg.norm(nxt - C, axis=1)
+        d = (nxt - C) / np.maximum(length, 1e-9)[:, None]
+        if not np.all(np.isfinite(length)):
+            raise FeatureError("the pocket outline fit degenerated: holder not in view")
+        ts = [np.arange(params.corner_trim_px, float(length[k]) - params.corner_trim_px + 1e-9,
+                        params.search_step_px) for k in range(n)]
+        which = np.repeat(np.arange(n), [len(t) for t in ts])
+        base = C[which] + np.concatenate(ts)[:, None] * d[which]
+        n_out = (-sign * np.column_stack([-d[:, 1], d[:, 0]]))[which]
         if len(base) < 16 or not np.all(np.isfinite(base)):
             raise FeatureError("the pocket outline fit degenerated: holder not in view")
         prof = sample_profiles(img, roi_origin, camera, base, n_out, offsets)
-        prof = gaussian_filter1d(prof, max(W / 12.0, 0.8) / step, axis=1)
+        prof = smooth_rows(prof, max(W / 12.0, 0.8) / step)
         g = np.diff(prof, axis=1)
         j = np.argmax(g, axis=1)
         peak = g[np.arange(len(g)), j]
         # wide windows are mostly flat: the derivative's MAD is its noise; narrow ones hold
         # little but the edge, so there a step must reach a quarter of the median step
-        noise = (MAD_TO_SIGMA * float(np.median(np.abs(g - np.median(g)))) if W >= 10 else
+        g_all = g.reshape(1, -1)
+        noise = (MAD_TO_SIGMA * float(median_rows(np.abs(g_all - median_rows(g_all)[0]))[0])
+                 if W >= 10 else
                  0.25 / 3.0 * float(np.median(peak[peak > 0])) if np.any(peak > 0) else 0.0)
         # parabolic sub-sample peak
         jj = np.clip(j, 1, g.shape[1] - 2)
@@ -277,16 +295,18 @@ def search_outline(img: np.ndarray, roi_origin, camera: Camera, holder: Holder,
             raise FeatureError(f"no pocket edge found along the outline ({int(ok.sum())} edge "
                                "points): holder hidden or not in view")
         p = base[ok] + o[ok, None] * n_out[ok]
-        ln = plane_lines[which[ok]]
-        r = _line_distances_px(H, ln, p)
+        k_ok = which[ok]
+        ln = plane_lines[k_ok]
+        r = _line_distances_px(H, plane_lines, p, k_ok)
         s = mad_scale(r, 0.25)
+        system = _h_line_system(ln, p)  # only the weights change below
         for _ in range(6):
             w = tukey_weights(r, s)
             if np.count_nonzero(w) < 16:
                 break
             q = np.column_stack([p, np.ones(len(p))]) @ np.linalg.inv(H).T
-            H1 = _fit_h_lines(ln, p, np.sqrt(w) / np.abs(q[:, 2]))
-            r = _line_distances_px(H1, ln, p)
+            H1 = _fit_h_lines(ln, p, np.sqrt(w) / np.abs(q[:, 2]), system)
+            r = _line_distances_px(H1, plane_lines, p, k_ok)
             H = H1
             s = min(s, mad_scale(r[w > 0], 0.1))
         # share of all profiles (the whole outline) whose edge point fits

@@ -81,7 +81,8 @@ from .pnp.base import as_points_px
 from .vanishing import check_contour, initial_pose, initial_pose_paper
 
 __all__ = ["DistanceImage", "distance_image", "dm_score", "TemplateLibrary", "distance_match",
-           "refine_continuous", "solve_dm", "solve_dm_plus", "PAPER_STEPS"]
+           "refine_continuous", "refine_from_close_start", "solve_dm", "solve_dm_plus",
+           "PAPER_STEPS"]
 
 #: The paper's coarse-to-fine steps (mm and deg).
 PAPER_STEPS = (5.0, 1.0, 0.5, 0.2, 0.1)
@@ -516,6 +517,51 @@ def refine_continuous(est: PoseEstimate, ideal_px: np.ndarray, camera: Camera, h
                                     info=info)
     return PoseEstimate(method="dm+", R_cam_holder=R, t_cam_holder_mm=t, residual_px=rms,
                         info=info)
+
+
+def refine_from_close_start(points_px, camera: Camera, holder: Holder, initial,
+                            motion_range: MotionRange | None = None, slack: float = 0.5,
+                            truncate_mm: float = 10.0, partial: bool | None = None,
+                            max_rms_px: float = 1.5) -> PoseEstimate:
+    """dm+ without the grid search (issue 13): the continuous one-to-one refinement
+    (:func:`refine_continuous`) straight from a start that is already close, e.g. the pose of
+    the field chain's outline homography (within ~0.5 deg and a few mm: far less than half the
+    corner spacing, so the first assignment is already the final one).
+
+    DM's coarse-to-fine search only brings the start into the basin of the refinement; from
+    such a start it adds nothing: both end at the same least-squares fixpoint (same assignment,
+    same cost). Whether the start was close enough is checked, not assumed: every corner
+    (every seen corner of a partial set) must be assigned one-to-one within the gate and the
+    RMS residual be at most ``max_rms_px``; otherwise the estimate is a failure whose reason
+    says so, and the caller runs the full ``dm+``.
+
+    Parameters as :func:`distance_match` (``initial``: ``(R, t_mm)``).
+    """
+    t0 = time.perf_counter()
+    rng = motion_range or MotionRange()
+    x = as_points_px(points_px)
+    if partial is None:
+        partial = len(x) != holder.n_corners
+    x = _check_partial(x, holder) if partial else check_contour(x, holder)
+    R0, t0_mm = np.asarray(initial[0], float), np.asarray(initial[1], float).reshape(3)
+    dof0 = pose_dof(R0, t0_mm)
+    if not np.all(np.isfinite(dof0)) or rng.excess(dof0) > slack:
+        return PoseEstimate.failure("dm+", "the close start lies outside the motion range")
+    ideal = camera.undistort_px(x)
+    if not np.all(np.isfinite(ideal)):
+        raise InputError("points_px lie outside the camera's valid distortion domain")
+    gate = truncate_mm * camera.focal_px / float(rng.center_dof[5]) if partial else None
+    start = PoseEstimate(method="dm+", R_cam_holder=R0, t_cam_holder_mm=t0_mm,
+                         info={"start": "close", "start_dof": dof0.tolist()})
+    est = refine_continuous(start, ideal, camera, holder, rng, slack=slack, gate_px=gate)
+    pairs = est.info.get("assignment")
+    n_pairs = 0 if pairs is None else len(pairs)
+    if est and (n_pairs != len(x) or not est.residual_px <= max_rms_px):
+        est = PoseEstimate.failure("dm+", f"the close start did not converge ({n_pairs} of "
+                                   f"{len(x)} corners paired, RMS {est.residual_px:.2f} px)",
+                                   info=est.info)
+    est.time_ms = (time.perf_counter() - t0) * 1e3
+    return est
 
 
 def _check_partial(x: np.ndarray, holder: Holder) -> np.ndarray:
