@@ -7,7 +7,7 @@ STAMP := $(VENV)/.installed
 $(STAMP): pyproject.toml
 	test -x $(PY) || python3 -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
-	$(PY) -m pip install -q -e '.[dev,cluster,field]'
+	$(PY) -m pip install -q -e '.[dev,cluster,field,service]'
 	touch $(STAMP)
 
 demo: $(STAMP)

@@ -7,7 +7,7 @@ import cutterpose
 
 PKG = Path(cutterpose.__file__).parent
 # the parts that use the core; the core (geometry, image, solvers, ...) must not import them
-USERS = ("cutterpose.cli", "cutterpose.experiments", "cutterpose.service")
+USERS = ("cutterpose.cli", "cutterpose.experiments", "cutterpose.service", "cutterpose.client")
 
 
 def _module_name(path: Path) -> str:

@@ -37,6 +37,10 @@ class HolderModelError(ModelFileError):
     directions...)."""
 
 
+class CellFileError(ModelFileError):
+    """A cell file (``cutterpose serve --config``) is malformed; the message names the field."""
+
+
 class ImageError(CutterposeError):
     """An image cannot be used: missing, unreadable, wrong size, black, saturated..."""
 

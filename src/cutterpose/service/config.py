@@ -1,0 +1,306 @@
+"""The cell file of ``cutterpose serve``: camera, holder model(s), hand-eye file, tolerances and
+service settings, read once at start and validated (a bad field stops the start with a message
+naming it).
+
+A cell file is TOML (read with :mod:`tomllib`); every key is optional and defaults to the
+bundled Table 1 cell (``cutterpose/data/cell_table1.toml``)::
+
+    name = "cell 1"
+    camera = "camera.json"            # a camera file, or "table1" / "synthetic" (bundled)
+    method = "dm+"                    # pose method (cutterpose.methods)
+    chain = "field"                   # image chain: field (default) or paper (section 2.1)
+    handeye = "handeye.json"          # eye-in-hand calibration (PROTOCOL.md "Hand-eye file")
+    default_holder = "default"
+
+    [holders]                         # holder models by name; "default" = the bundled one
+    default = "default"
+
+    [tolerances]                      # when a pose is refused (pipeline.QualityLimits fields)
+    max_rms_px = 1.5
+
+    [robot]                           # the base-frame step (cutterpose.robot.locate)
+    accuracy_mm = 0.05                # robot's position error, 1 sigma per axis
+    accuracy_deg = 0.01               # robot's angle error, 1 sigma per axis
+    grasp_tolerance_mm = 1.0          # grasp verdict: 3-sigma position bound
+    grasp_tolerance_deg = 0.265       # 3-sigma angle bound (default: position / cutter radius)
+
+    [service]
+    data_dir = "/var/lib/cutterpose"  # SQLite database and images; CUTTERPOSE_DATA_DIR wins
+    workers = 0                       # worker processes; 0 = one per core
+    queue_size = 32                   # requests waiting beyond the busy workers, then 503
+    deadline_s = 30                   # per request, queue wait included, then 504
+    max_body_mb = 64                  # larger bodies get 413
+    image_cap_mb = 2048               # stored images, oldest evicted first; 0 = keep none
+    token_file = "token.txt"          # bearer token; CUTTERPOSE_TOKEN wins
+
+Relative paths are relative to the cell file's folder, except ``data_dir``, which is relative to
+the current directory (default ``./cutterpose-data``), so that the bundled cell file never
+writes into the installed package.
+
+Convention:
+    Units in key names (``_px``, ``_deg``, ``_mm``, ``_s``, ``_mb`` = 2**20 bytes); six-element
+    tolerances are per DOF in the order alpha, beta, gamma [deg], X, Y, Z [mm] (pipeline.py).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import tomllib
+from dataclasses import dataclass, field
+from importlib import resources
+from pathlib import Path
+from typing import Annotated, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+
+from ..calibration.handeye import HandEye, load_handeye
+from ..errors import CellFileError, CutterposeError
+from ..geometry.camera import Camera, default_camera
+from ..geometry.camera_files import load_camera
+from ..geometry.holder import Holder, default_holder, load_holder
+from ..image import FeatureParams
+from ..methods import get_method
+from ..pipeline import QualityLimits
+from ..robot import GraspTolerance, RobotAccuracy
+
+__all__ = ["Cell", "ServiceSettings", "load_cell", "bundled_cell_path", "TOKEN_ENV",
+           "DATA_DIR_ENV"]
+
+TOKEN_ENV = "CUTTERPOSE_TOKEN"
+DATA_DIR_ENV = "CUTTERPOSE_DATA_DIR"
+BUNDLED_CELL = "cell_table1.toml"
+
+Positive = Annotated[float, Field(gt=0, allow_inf_nan=False)]
+Six = Annotated[tuple[float, float, float, float, float, float], Field()]
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class _Tolerances(_Strict):
+    """Overrides of :class:`cutterpose.pipeline.QualityLimits` (absent: the pipeline's default)."""
+
+    max_rms_px: Positive | None = None
+    max_corner_residual_px: Positive | None = None
+    max_ambiguity_ratio: Positive | None = None
+    range_center_dof: Six | None = None
+    range_half_width_dof: Six | None = None
+    range_tolerance_dof: Six | None = None
+    max_std_dof: Six | None = None
+    max_edge_bias_dof: Six | None = None
+
+    @field_validator("range_half_width_dof", "range_tolerance_dof", "max_std_dof",
+                     "max_edge_bias_dof")
+    @classmethod
+    def _non_negative(cls, v):
+        if v is not None and not all(0 <= x < float("inf") for x in v):
+            raise ValueError("every element must be finite and >= 0")
+        return v
+
+
+class _Robot(_Strict):
+    accuracy_mm: float = Field(0.05, ge=0, allow_inf_nan=False)
+    accuracy_deg: float = Field(0.01, ge=0, allow_inf_nan=False)
+    grasp_tolerance_mm: Positive = 1.0
+    grasp_tolerance_deg: Positive | None = None
+
+
+class _Service(_Strict):
+    data_dir: str | None = None
+    workers: int = Field(0, ge=0, le=256)
+    queue_size: int = Field(32, ge=0, le=100_000)
+    deadline_s: Positive = 30.0
+    max_body_mb: Positive = 64.0
+    image_cap_mb: float = Field(2048.0, ge=0, allow_inf_nan=False)
+    token_file: str | None = None
+
+
+class _CellFile(_Strict):
+    name: str = "cell"
+    camera: str = "table1"
+    method: str = "dm+"
+    chain: Literal["field", "paper"] = "field"
+    handeye: str | None = None
+    default_holder: str = "default"
+    holders: dict[str, str] = Field(default_factory=lambda: {"default": "default"})
+    tolerances: _Tolerances = _Tolerances()
+    robot: _Robot = _Robot()
+    service: _Service = _Service()
+
+
+@dataclass(frozen=True)
+class ServiceSettings:
+    """The ``[service]`` section, resolved (paths absolute, sizes in bytes)."""
+
+    data_dir: Path
+    workers: int
+    queue_size: int
+    deadline_s: float
+    max_body_bytes: int
+    image_cap_bytes: int
+
+
+@dataclass(frozen=True)
+class Cell:
+    """A loaded and validated cell: what every worker needs to measure (picklable; the bearer
+    token is kept apart in :attr:`token` and not sent to the workers, see :meth:`for_worker`)."""
+
+    path: Path
+    name: str
+    camera: Camera
+    camera_source: str
+    holders: dict[str, Holder]
+    default_holder: str
+    method: str
+    chain: str
+    limits: QualityLimits
+    handeye: HandEye | None
+    handeye_path: Path | None
+    robot_accuracy: RobotAccuracy
+    grasp_tolerance: GraspTolerance
+    service: ServiceSettings
+    token: str = field(default="", repr=False)
+
+    def holder(self, name: str | None) -> Holder:
+        return self.holders[name or self.default_holder]
+
+    def feature_params(self) -> FeatureParams:
+        """The image processing parameters, as ``cutterpose measure --chain`` uses them."""
+        return FeatureParams.for_camera(self.camera, chain=self.chain)
+
+    def for_worker(self) -> Cell:
+        """This cell without the token (what is pickled to the worker processes)."""
+        return dataclasses.replace(self, token="")
+
+    def describe(self) -> dict:
+        """Public summary (``/ready``): no secrets, no absolute paths of the host."""
+        w, h = self.camera.image_size_px
+        return {"name": self.name, "camera": self.camera_source, "image_size_px": [w, h],
+                "holders": sorted(self.holders), "default_holder": self.default_holder,
+                "method": self.method, "chain": self.chain,
+                "handeye": self.handeye is not None}
+
+
+def bundled_cell_path() -> Path:
+    """The bundled default cell file (Table 1 camera, bundled holder, no hand-eye file)."""
+    return Path(str(resources.files("cutterpose.data").joinpath(BUNDLED_CELL)))
+
+
+def _where(loc) -> str:
+    return ".".join(str(p) for p in loc) or "(top level)"
+
+
+def _resolve(base: Path, name: str) -> Path:
+    p = Path(name).expanduser()
+    return p if p.is_absolute() else base / p
+
+
+def _read_token(cell_dir: Path, token_file: str | None, env: dict) -> str:
+    tok = env.get(TOKEN_ENV)
+    where = f"environment variable {TOKEN_ENV}"
+    if not tok and token_file:
+        p = _resolve(cell_dir, token_file)
+        try:
+            tok = p.read_text().strip()
+        except OSError as e:
+            raise CellFileError(f"service.token_file: {p}: cannot be read ({e.strerror})"
+                                ) from None
+        where = f"service.token_file {p}"
+    if not tok:
+        raise CellFileError(f"no bearer token: set {TOKEN_ENV} or name a file in "
+                            "service.token_file (a token is never taken from the command line)")
+    tok = tok.strip()
+    if not tok or any(c.isspace() for c in tok) or not tok.isprintable():
+        raise CellFileError(f"{where}: the token must be printable and without spaces")
+    return tok
+
+
+def load_cell(path: str | Path | None = None, env: dict | None = None,
+              need_token: bool = True) -> Cell:
+    """Read and validate a cell file (``None``: the bundled one).
+
+    Parameters
+    ----------
+    path : the TOML cell file.
+    env : environment to read ``CUTTERPOSE_TOKEN`` / ``CUTTERPOSE_DATA_DIR`` from
+        (default ``os.environ``).
+    need_token : refuse a cell without a bearer token (the service always needs one).
+
+    Raises
+    ------
+    CellFileError
+        Missing file, bad TOML, an unknown key or a bad value (the message names the field),
+        an unknown method, an unreadable camera / holder / hand-eye file, or no token.
+    """
+    env = os.environ if env is None else env
+    path = bundled_cell_path() if path is None else Path(path)
+    if not path.is_file():
+        raise CellFileError(f"{path}: cell file not found")
+    try:
+        raw = tomllib.loads(path.read_text())
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
+        raise CellFileError(f"{path}: not valid TOML ({e})") from None
+    try:
+        cf = _CellFile.model_validate(raw)
+    except ValidationError as e:
+        err = e.errors()[0]
+        more = f" (and {e.error_count() - 1} more)" if e.error_count() > 1 else ""
+        raise CellFileError(f"{path}: {_where(err['loc'])}: {err['msg']}{more}") from None
+    base = path.resolve().parent
+
+    def field_error(name: str, e: Exception) -> CellFileError:
+        return CellFileError(f"{path}: {name}: {e}")
+
+    try:
+        get_method(cf.method)
+    except CutterposeError as e:
+        raise field_error("method", e) from None
+    try:
+        camera = (default_camera(cf.camera) if cf.camera in ("table1", "synthetic")
+                  else load_camera(_resolve(base, cf.camera)))
+    except CutterposeError as e:
+        raise field_error("camera", e) from None
+    holders = {}
+    for name, src in cf.holders.items():
+        try:
+            holders[name] = (default_holder() if src == "default"
+                             else load_holder(_resolve(base, src)))
+        except CutterposeError as e:
+            raise field_error(f"holders.{name}", e) from None
+    if cf.default_holder not in holders:
+        raise CellFileError(f"{path}: default_holder: {cf.default_holder!r} is not in "
+                            f"[holders] ({', '.join(sorted(holders))})")
+    handeye_path = _resolve(base, cf.handeye) if cf.handeye else None
+    try:
+        handeye = load_handeye(handeye_path) if handeye_path else None
+    except CutterposeError as e:
+        raise field_error("handeye", e) from None
+    try:
+        accuracy = RobotAccuracy(cf.robot.accuracy_mm, cf.robot.accuracy_deg)
+        tolerance = GraspTolerance(cf.robot.grasp_tolerance_mm,
+                                   angle_deg=cf.robot.grasp_tolerance_deg)
+    except (CutterposeError, ValueError) as e:
+        raise field_error("robot", e) from None
+    overrides = {k: v for k, v in cf.tolerances.model_dump().items() if v is not None}
+    limits = QualityLimits(**overrides)
+    s = cf.service
+    data_dir = env.get(DATA_DIR_ENV) or s.data_dir or "cutterpose-data"
+    workers = s.workers or (os.cpu_count() or 1)
+    service = ServiceSettings(
+        data_dir=Path(data_dir).expanduser().resolve(), workers=workers,
+        queue_size=s.queue_size, deadline_s=float(s.deadline_s),
+        max_body_bytes=int(s.max_body_mb * 2 ** 20),
+        image_cap_bytes=int(s.image_cap_mb * 2 ** 20))
+    token = ""
+    if need_token:
+        try:
+            token = _read_token(base, s.token_file, env)
+        except CellFileError as e:
+            raise CellFileError(f"{path}: {e}") from None
+    return Cell(path=path, name=cf.name, camera=camera, camera_source=cf.camera,
+                holders=holders, default_holder=cf.default_holder, method=cf.method,
+                chain=cf.chain, limits=limits, handeye=handeye, handeye_path=handeye_path,
+                robot_accuracy=accuracy, grasp_tolerance=tolerance, service=service,
+                token=token)
