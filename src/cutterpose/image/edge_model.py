@@ -653,6 +653,7 @@ class OffsetTable:
         self.view = edge_views(R_cam_holder, t_cam_holder_mm, K, holder, look)
         # the shipped grid (if asked for and the view is inside it, ~1 ms), else the exact model
         w = tabulated_w_px(self.radii, self.view, look) if tabulated else None
+        self.tabulated = w is not None
         if w is not None:
             self.delta = w / self.view.a_s[..., None]
         else:
