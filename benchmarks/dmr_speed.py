@@ -3,6 +3,7 @@
 
     PYTHONPATH=src python benchmarks/dmr_speed.py [--repeats 5] [--pbr /work/data/pbr_new_s200]
         [--count 10]
+    PYTHONPATH=src python benchmarks/dmr_speed.py --grid   # dm+r fitted on the offset grid
     PYTHONPATH=src python benchmarks/dmr_speed.py --write-grid   # rebuild the offset grid
 
 Images: ``make bench``'s image (analytic ``easy`` preset at 3,-4,2,5,-8,610), the analytic
@@ -37,7 +38,6 @@ from cutterpose.geometry.camera import camera_from_dict, default_camera  # noqa:
 from cutterpose.geometry.holder import default_holder  # noqa: E402
 from cutterpose.geometry.pose import Pose  # noqa: E402
 from cutterpose.image import edge_model  # noqa: E402
-from cutterpose.image.edge_model import EdgeLook, build_offset_grid  # noqa: E402
 from cutterpose.pipeline import measure  # noqa: E402
 from cutterpose.render.analytic import render_holder  # noqa: E402
 
@@ -47,6 +47,8 @@ TARGET_MS = 50.0
 
 def write_grid() -> Path:
     """Tabulate the nominal look's offsets for both edge shapes and write the package file."""
+    from cutterpose.image.edge_model import EdgeLook, build_offset_grid
+
     keys, grids = [], []
     for shape in ("round", "chamfer"):
         t0 = time.perf_counter()
@@ -81,7 +83,13 @@ def main() -> None:
     ap.add_argument("--pbr", default="/work/data/pbr_new_s200")
     ap.add_argument("--count", type=int, default=10, help="pbr images")
     ap.add_argument("--write-grid", action="store_true")
+    ap.add_argument("--grid", action="store_true",
+                    help="dm+r on the shipped offset grid (edge_radius.TABULATED_TABLES)")
     a = ap.parse_args()
+    if a.grid:
+        from cutterpose.solvers import edge_radius
+
+        edge_radius.TABULATED_TABLES = True
     if a.write_grid:
         write_grid()
         return

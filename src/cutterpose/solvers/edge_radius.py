@@ -69,6 +69,10 @@ SHAPE_MARGIN = 0.7
 #: a shape screened on the offset grid is scanned exactly when its cost is below this fraction
 #: of the first shape's (well above SHAPE_MARGIN: the grid's cost error is a few percent)
 SCREEN_MARGIN = 0.9
+#: fit on the shipped offset grid (``OffsetTable(tabulated=True)``) rather than on the exact
+#: offsets: faster, but the grid blurs the jumps of delta(r) and the fit moves by up to a few
+#: tenths of a millimetre on images where r and Z are confounded (edge_model.md, "Cost")
+TABULATED_TABLES = False
 #: the radii (mm) the fit starts from (the best one) and the budget's radius profile
 SCAN_RADII_MM = (0.0, 0.5, 1.0, 1.5, 2.0, 3.0, 4.0, 5.0, 6.0)
 
@@ -366,13 +370,16 @@ def _assigned(est: PoseEstimate, ideal_px: np.ndarray, camera: Camera, holder: H
 def refine_radius(est: PoseEstimate, ideal_px: np.ndarray, camera: Camera, holder: Holder,
                   look: EdgeLook = EdgeLook(), prior: RadiusPrior = RadiusPrior(),
                   name: str = "dm+r", shapes=("round", "chamfer"),
-                  ordered: bool = False) -> PoseEstimate:
+                  ordered: bool = False, tabulated: bool | None = None) -> PoseEstimate:
     """The refinement step after a solver: ``est`` -> the design-edge pose and the radius
     (``info["edge_radius_mm"]``, ``info["radius_fit"]`` the :class:`RadiusFit`), fitted for
     each edge ``shapes`` and the better kept (``info["edge_shape"]``).
 
     ``ordered``: ``ideal_px`` is already in model order (the field chain), NaN rows for the
-    corners not seen, which the fit leaves out; else the solver's assignment orders them."""
+    corners not seen, which the fit leaves out; else the solver's assignment orders them.
+    ``tabulated``: fit on the shipped offset grid instead of the exact offsets (default
+    :data:`TABULATED_TABLES`; ~12 ms faster, but not the same fit: docs/notes/edge_model.md,
+    "Cost")."""
     if not est:
         return PoseEstimate.failure(name, est.reason, info=est.info)
     t0 = time.perf_counter()
@@ -396,13 +403,14 @@ def refine_radius(est: PoseEstimate, ideal_px: np.ndarray, camera: Camera, holde
         sc = _scan_radius(dof0, q, t, holder, camera.K, prior, SCAN_RADII_MM)
         return t, sc, min(c for _, c, _ in sc[2])
 
-    tables, scans, cost = (list(x) for x in zip(scanned(shapes[0], False)))
+    fast = TABULATED_TABLES if tabulated is None else tabulated
+    tables, scans, cost = (list(x) for x in zip(scanned(shapes[0], fast)))
     for sh in shapes[1:]:
         # the other shapes are screened on the shipped offset grid (~1 ms instead of ~15 ms;
         # its offsets are within ~0.01 mm, its scan cost within a few percent); only one that
         # comes near winning is scanned on the exact table, so the fit always uses one
         t, sc, c = scanned(sh, True)
-        if t.tabulated and c <= SCREEN_MARGIN * cost[0]:
+        if t.tabulated and not fast and c <= SCREEN_MARGIN * cost[0]:
             t, sc, c = scanned(sh, False)
         tables.append(t)
         scans.append(sc)
