@@ -377,6 +377,8 @@ def refine_radius(est: PoseEstimate, ideal_px: np.ndarray, camera: Camera, holde
 
     ``ordered``: ``ideal_px`` is already in model order (the field chain), NaN rows for the
     corners not seen, which the fit leaves out; else the solver's assignment orders them.
+    ``info["shape_costs"]``: each shape's best scan cost (a shape screened on the offset grid
+    and not rescanned: its grid cost).
     ``tabulated``: fit on the shipped offset grid instead of the exact offsets (default
     :data:`TABULATED_TABLES`; ~12 ms faster, but not the same fit: docs/notes/edge_model.md,
     "Cost")."""
