@@ -386,6 +386,10 @@ def experiment_images_cmd(
     limit: int = typer.Option(None, help="Only the first N images."),
     no_refine: bool = typer.Option(False, "--no-refine",
                                    help="The paper's lines only (no gradient refinement)."),
+    chain: str = typer.Option("field", help="Image chain: field (default), paper (section "
+                              "2.1 with this package's refinements and fall-backs) or "
+                              "as-written (section 2.1 exactly: threshold 70, contour lines, "
+                              "no refinement, no fall-back)."),
 ):
     """Table 2 figures of every method on an image set (trials.csv, summary.md)."""
     from rich.progress import Progress
@@ -395,10 +399,16 @@ def experiment_images_cmd(
     from .methods import parse_methods
 
     names = [m.name for m in parse_methods(methods)]
+    chains = {"field": lambda: FeatureParams(refine=not no_refine),
+              "paper": lambda: FeatureParams.paper(refine=not no_refine),
+              "as-written": lambda: FeatureParams.paper(refine=False, threshold_fallback="none",
+                                                        model_fallback="none")}
+    if chain not in chains:
+        fail(f"--chain must be one of {', '.join(chains)}, got {chain!r}")
     with Progress(transient=True) as bar:
         task = bar.add_task("images", total=None)
         run_images(folder, names, out, workers=workers, limit=limit, scheduler=scheduler,
-                   params=FeatureParams(refine=not no_refine),
+                   params=chains[chain](),
                    progress=lambda done, n: bar.update(task, completed=done, total=n))
     typer.echo(f"wrote {out}/trials.csv, summary.md, corners.csv, failures.csv")
     typer.echo((__import__("pathlib").Path(out) / "summary.md").read_text())
