@@ -230,6 +230,16 @@ def _line_distances_px(H: np.ndarray, plane_lines: np.ndarray, pts: np.ndarray,
     return Li[:, 0] * pts[:, 0] + Li[:, 1] * pts[:, 1] + Li[:, 2]
 
 
+def _innermost_peak(g: np.ndarray, j_max: np.ndarray, fraction: float) -> np.ndarray:
+    """Per row of ``g``, the first local maximum (from the pocket side) reaching ``fraction``
+    of the row's maximum ``g[j_max]``; ``j_max`` where there is none."""
+    gmax = g[np.arange(len(g)), j_max]
+    cand = np.zeros(g.shape, bool)
+    cand[:, 1:-1] = ((g[:, 1:-1] >= g[:, :-2]) & (g[:, 1:-1] > g[:, 2:])
+                     & (g[:, 1:-1] >= fraction * gmax[:, None]))
+    return np.where(cand.any(axis=1), np.argmax(cand, axis=1), j_max)
+
+
 def search_outline(img: np.ndarray, roi_origin, camera: Camera, holder: Holder,
                    H0: np.ndarray, params: FeatureParams):
     """Model-guided search of the pocket outline on the gradient (field chain).
@@ -277,6 +287,10 @@ def search_outline(img: np.ndarray, roi_origin, camera: Camera, holder: Holder,
         prof = smooth_rows(prof, max(W / 12.0, 0.8) / step)
         g = np.diff(prof, axis=1)
         j = np.argmax(g, axis=1)
+        if W < 20 and params.edge_innermost > 0:
+            # near the outline: the innermost rise of a broken edge, as the line fits take it
+            # (edges._half_max_centroids), not whichever of its rises is strongest here
+            j = _innermost_peak(g, j, params.edge_innermost)
         peak = g[np.arange(len(g)), j]
         # wide windows are mostly flat: the derivative's MAD is its noise; narrow ones hold
         # little but the edge, so there a step must reach a quarter of the median step

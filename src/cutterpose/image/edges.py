@@ -77,27 +77,52 @@ def _robust_line(p: np.ndarray, iterations: int = 5):
 
 
 def _half_max_centroids(g: np.ndarray, o0: float, step: float,
-                        groups: np.ndarray | None = None, n_groups: int = 0):
+                        groups: np.ndarray | None = None, n_groups: int = 0,
+                        innermost: float = 0.0):
     """Sub-pixel edge position of each profile derivative ``g`` (rows): the centroid of
-    ``g - g_max / 2`` over the contiguous run around the maximum where ``g > g_max / 2``.
+    ``g - g_j / 2`` over the contiguous run around the chosen peak ``j`` where ``g > g_j / 2``.
 
     For a symmetric point-spread function the derivative of the edge profile is symmetric about
     the edge, and so is its half-maximum run: the centroid is the edge, for narrow (Gaussian) and
     flat-topped (defocus disk) blur alike. Rows whose run touches the window's end, or whose
-    maximum is weak (< 0.3 of the median maximum), are rejected.
+    peak is weak (< 0.3 of the median peak), are rejected.
+
+    ``innermost`` = 0: the peak is the row's maximum (the strongest rise). ``innermost`` =
+    ``f`` > 0 (field chain): the first local maximum from the window's start (the pocket side)
+    reaching ``f`` of the row's maximum, and its run ends at the valley before the next rise.
+    A broken edge (fillet or chamfer) images as two or more rises (wall to fillet, a specular
+    line on the fillet, fillet to face) whose strengths swap along the edge with the texture and
+    the light; the strongest one jumps between them, the innermost one (where the fillet meets
+    the wall, within about ``r`` of depth of the design edge, whatever the shading) does not.
 
     Returns
     -------
     offsets : edge positions of the accepted rows; rows : their indices.
     """
     G = g.shape[1]
-    j = np.argmax(g, axis=1)
-    peak = g[np.arange(len(g)), j]
-    half = 0.5 * peak
+    rows_all = np.arange(len(g))
     # small integer types: these masks and index arrays are (profiles x samples)
     idx = np.arange(G, dtype=np.int16)
-    jj = j.astype(np.int16)[:, None]
-    below = g <= half[:, None]
+    if innermost > 0 and G >= 3:
+        gmax = g.max(axis=1)
+        gl, gr = np.empty_like(g), np.empty_like(g)
+        gl[:, 0], gl[:, 1:] = np.inf, g[:, :-1]
+        gr[:, -1], gr[:, :-1] = -np.inf, g[:, 1:]
+        cand = (g >= gl) & (g > gr) & (g >= innermost * gmax[:, None])
+        j = np.where(cand.any(axis=1), np.argmax(cand, axis=1), np.argmax(g, axis=1))
+        peak = g[rows_all, j]
+        half = 0.5 * peak
+        jj = j.astype(np.int16)[:, None]
+        # the run also stops at a valley (a local minimum below 0.8 of the peak) towards the
+        # next rise, so that two rises merged above half height are not averaged
+        valley = (g <= gl) & (g < gr) & (g < 0.8 * peak[:, None])
+        below = (g <= half[:, None]) | valley
+    else:
+        j = np.argmax(g, axis=1)
+        peak = g[rows_all, j]
+        half = 0.5 * peak
+        jj = j.astype(np.int16)[:, None]
+        below = g <= half[:, None]
     left = np.where(below & (idx < jj), idx, np.int16(-1)).max(axis=1)
     right = np.where(below & (idx > jj), idx, np.int16(G)).min(axis=1)
     inside = (idx > left[:, None]) & (idx < right[:, None])
@@ -574,7 +599,8 @@ def robust_edge_lines(img: np.ndarray, roi_origin, camera: Camera, pred_ideal: n
     prof = sample_profiles(img, roi_origin, camera, base, -n_in[which], offsets)
     if params.refine_sigma_px > 0:
         prof = smooth_rows(prof, params.refine_sigma_px / 0.25)
-    o, rows = _half_max_centroids(np.diff(prof, axis=1), offsets[0] + 0.125, 0.25, which, n)
+    o, rows = _half_max_centroids(np.diff(prof, axis=1), offsets[0] + 0.125, 0.25, which, n,
+                                   innermost=params.edge_innermost)
     pts_all = base[rows] - o[:, None] * n_in[which[rows]]
     w_all = which[rows]
     fit = []  # edges with enough points: (k, points, profiled run's ends)

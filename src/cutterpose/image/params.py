@@ -78,6 +78,9 @@ class FeatureParams:
     min_line_support: float = 0.3         #: a line is seen if inliers cover this much of it
     min_outline_support: float = 0.6      #: the outline fit must rest on edges along this much
     max_line_shift_px: float = 2.5        #: a seen line stays this close to the outline fit
+    #: which rise across a broken (rounded, chamfered) edge is the edge: 0 = the strongest;
+    #: f > 0 = the innermost (pocket-side) rise reaching f of the strongest (edges.py)
+    edge_innermost: float = 0.3
 
     @classmethod
     def paper(cls, **changes) -> FeatureParams:
