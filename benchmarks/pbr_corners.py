@@ -25,9 +25,43 @@ from cutterpose.errors import CutterposeError
 from cutterpose.experiments.images import load_image_set
 from cutterpose.geometry.pose import pose_errors
 from cutterpose.image import FeatureParams, detect_features
+from cutterpose.image.params import signed_area
 from cutterpose.pipeline import measure_features
 
 WRONG_PX = 3.0  #: a seen corner farther than this from the design corner is counted wrong
+
+
+def line_offsets(f, e: dict, camera, holder):
+    """Outward offset (mm, in the top-face plane) of each seen line from its design edge, at
+    both ends, and whether it lies outside the band a broken edge of the truth's radius can
+    put the image edge in (``[-0.5 r_max - 0.3, r_max + 0.3]`` mm: the rise is somewhere
+    between the wall at depth ``r`` and the face at ``r`` outside; 0.3 mm ~ 1.2 px of slack):
+    a line on something else (a wrong rise, a lump, the cutter)."""
+    truth = camera.undistort_px(np.asarray(e["corners_px"], float))
+    n = len(truth)
+    nxt = np.roll(truth, -1, axis=0)
+    d = (nxt - truth) / np.linalg.norm(nxt - truth, axis=1, keepdims=True)
+    sign = np.sign(signed_area(truth))
+    n_out = -sign * np.column_stack([-d[:, 1], d[:, 0]])
+    model = np.asarray(holder.corners_mm, float)
+    mm = np.linalg.norm(np.roll(model, -1, axis=0) - model, axis=1)
+    px_per_mm = np.linalg.norm(nxt - truth, axis=1) / mm
+    r_max = np.zeros(n)
+    edges = e.get("edges")
+    if isinstance(edges, list) and len(edges) == n:
+        r_max = np.array([float(x.get("radius_max_mm", 0.0)) for x in edges])
+    off = np.full((n, 2), np.nan)
+    bad = np.zeros(n, bool)
+    L = np.asarray(f.lines_ideal, float)
+    for k in range(n):
+        if not np.all(np.isfinite(L[k])):
+            continue
+        for j, p in enumerate((truth[k], nxt[k])):
+            q = p - (L[k, :2] @ p + L[k, 2]) * L[k, :2]
+            off[k, j] = (q - p) @ n_out[k] / px_per_mm[k]
+        lo, hi = -0.5 * r_max[k] - 0.3, r_max[k] + 0.3
+        bad[k] = bool(np.any((off[k] < lo) | (off[k] > hi)))
+    return off, bad
 
 
 def run_image(folder: Path, e: dict, camera, holder, params) -> dict:
@@ -49,6 +83,7 @@ def run_image(folder: Path, e: dict, camera, holder, params) -> dict:
     use = vis & ~hidden
     row["err"] = np.linalg.norm(f.corners_px[use] - truth[use], axis=1)
     row["n_hidden_seen"] = int((vis & hidden).sum())
+    row["line_off"], row["line_bad"] = line_offsets(f, e, camera, holder)
     t1 = time.perf_counter()
     try:
         m = measure_features(f, camera, holder, "dm+")
@@ -69,13 +104,16 @@ def table(name: str, rows: list) -> str:
     seen = np.array([r["n_seen"] for r in rows])
     err = np.concatenate([r["err"] for r in rows]) if rows else np.zeros(0)
     wrong = int((err > WRONG_PX).sum())
+    n_lines = sum(int(np.isfinite(r["line_off"][:, 0]).sum()) for r in rows if "line_off" in r)
+    bad_lines = sum(int(r["line_bad"].sum()) for r in rows if "line_off" in r)
     posed = [r for r in rows if r["pose"]]
     t_feat = [r["t_feat"] for r in rows if "t_feat" in r]
     t_all = [r["t_feat"] + r.get("t_pose", 0.0) for r in rows if "t_feat" in r]
     cells = [name, f"{n}", f"{sum(r['n_seen'] >= 6 for r in rows)}",
              f"{np.mean(seen):.1f} ({seen.min() if n else 0}-{seen.max() if n else 0})",
              f"{np.sqrt(np.mean(err ** 2)):.3f}" if len(err) else "-",
-             f"{err.max():.2f}" if len(err) else "-", f"{wrong}"]
+             f"{err.max():.2f}" if len(err) else "-", f"{wrong}",
+             f"{n_lines / max(n, 1):.1f} / {bad_lines}"]
     if posed:
         pe = pose_errors(np.array([r["R"] for r in posed]), np.array([r["t"] for r in posed]),
                          np.array([r["Re"] for r in posed]), np.array([r["te"] for r in posed]))
@@ -91,9 +129,9 @@ def table(name: str, rows: list) -> str:
 
 
 HEADER = ("| set | images | features ok | corners seen, mean (min-max) | RMS px (seen, not "
-          "hidden) | max px | seen > 3 px | dm+ pose / accepted | bias a b g [deg] X Y Z [mm] "
+          "hidden) | max px | seen > 3 px | lines seen per image / off the edge band | dm+ pose / accepted | bias a b g [deg] X Y Z [mm] "
           "| std | p95 rot deg / trans mm | max rot / trans | median ms features / +dm+ |\n"
-          "|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+          "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
 
 
 def main():

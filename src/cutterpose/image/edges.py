@@ -139,6 +139,51 @@ def _half_max_centroids(g: np.ndarray, o0: float, step: float,
     return o0 + step * cen[rows], rows
 
 
+def _nearest_rise_centroids(g: np.ndarray, o0: float, step: float, o_expected: np.ndarray,
+                            fraction: float, gate_px: float):
+    """Per row of ``g``: the rise (a local maximum reaching ``fraction`` of the row's maximum)
+    whose peak is nearest ``o_expected`` (same units as the offsets ``o0 + step * index``), and
+    its half-maximum centroid as in :func:`_half_max_centroids` (the run split at valleys).
+    Rows with no rise within ``gate_px`` of ``o_expected`` are left out.
+
+    Returns
+    -------
+    offsets : edge positions of the kept rows; rows : their indices.
+    """
+    G = g.shape[1]
+    gl, gr = np.empty_like(g), np.empty_like(g)
+    gl[:, 0], gl[:, 1:] = np.inf, g[:, :-1]
+    gr[:, -1], gr[:, :-1] = -np.inf, g[:, 1:]
+    gmax = g.max(axis=1)
+    cand = (g >= gl) & (g > gr) & (g >= fraction * gmax[:, None]) & (g > 0)
+    pos = o0 + step * np.arange(G)
+    dist = np.where(cand, np.abs(pos[None, :] - o_expected[:, None]), np.inf)
+    j = np.argmin(dist, axis=1)
+    near = dist[np.arange(len(g)), j] <= gate_px
+    cen, ok = _run_centroids(g, j, gl, gr)
+    rows = np.nonzero(ok & near)[0]
+    return o0 + step * cen[rows], rows
+
+
+def _run_centroids(g: np.ndarray, j: np.ndarray, gl: np.ndarray, gr: np.ndarray):
+    """Centroid (sample index) of ``g - g_j / 2`` over the run round peak ``j`` of each row
+    where ``g > g_j / 2``, stopped at valleys (local minima below 0.8 of the peak); ``ok``
+    where the run stays inside the row."""
+    G = g.shape[1]
+    idx = np.arange(G, dtype=np.int16)
+    peak = g[np.arange(len(g)), j]
+    half = 0.5 * peak
+    jj = j.astype(np.int16)[:, None]
+    below = (g <= half[:, None]) | ((g <= gl) & (g < gr) & (g < 0.8 * peak[:, None]))
+    left = np.where(below & (idx < jj), idx, np.int16(-1)).max(axis=1)
+    right = np.where(below & (idx > jj), idx, np.int16(G)).min(axis=1)
+    inside = (idx > left[:, None]) & (idx < right[:, None])
+    w = np.where(inside, g - half[:, None], 0.0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        cen = (w @ np.arange(G, dtype=w.dtype)).astype(float) / w.sum(axis=1)
+    return cen, (left >= 0) & (right < G) & (peak > 0) & np.isfinite(cen)
+
+
 def refine_lines(image: np.ndarray, roi_origin: np.ndarray, camera: Camera,
                  lines_ideal: np.ndarray, spans: list, inward: np.ndarray,
                  params: FeatureParams):
@@ -614,17 +659,46 @@ def robust_edge_lines(img: np.ndarray, roi_origin, camera: Camera, pred_ideal: n
     L0, s0 = lmeds_lines([f[1] for f in fit], priors=[line_from(pred_ideal[k], n_in[k])
                                                        for k in ks],
                          seeds=ks, gate_points=[f[2] for f in fit],
-                         gate_px=params.max_line_shift_px)
+                         gate_px=params.max_line_shift_px + params.max_outward_shift_px)
     Ls, ss, ws = tukey_lines([f[1] for f in fit], L0, s0)
+    if params.edge_innermost > 0 and fit:
+        # second pass: per profile, the rise nearest the fitted line (its innermost rise may
+        # have been too weak there, or a stronger rise inside it a blemish), so that each line
+        # follows one and the same rise of a broken edge all along
+        g = np.diff(prof, axis=1)
+        lab = np.full(n, -1)
+        lab[ks] = np.arange(len(ks))
+        has = lab[which] >= 0
+        Lp = Ls[lab[which[has]]]
+        nb = -n_in[which[has]]
+        den = Lp[:, 0] * nb[:, 0] + Lp[:, 1] * nb[:, 1]
+        o_exp = -(Lp[:, 0] * base[has, 0] + Lp[:, 1] * base[has, 1] + Lp[:, 2]) / den
+        o2, r2 = _nearest_rise_centroids(g[has], offsets[0] + 0.125, 0.25, o_exp,
+                                         0.5 * params.edge_innermost, gate_px=2.0)
+        rows2 = np.nonzero(has)[0][r2]
+        pts2 = base[rows2] - o2[:, None] * n_in[which[rows2]]
+        w2 = which[rows2]
+        fit2 = [(k, pts2[w2 == k], ends) for k, _, ends in fit]
+        keep = [i for i, f in enumerate(fit2) if len(f[1]) >= 5]
+        if keep:
+            L2, s2, ws2 = tukey_lines([fit2[i][1] for i in keep], Ls[keep],
+                                      np.maximum(ss[keep], 0.1))
+            fit = [fit2[i] for i in keep]
+            Ls, ss, ws = L2, s2, ws2
     inliers = {}
     for (k, pts, ends), L, s_k, w in zip(fit, Ls, ss, ws):
         inl = w > 0
         ts = ts_k[k]
         support[k] = np.count_nonzero(inl) * params.refine_step_px / max(ts[-1] - ts[0], 1.0)
         scale[k] = s_k
-        # the fitted line's distance to the prediction at both ends of the profiled run
-        shift = np.abs(ends @ L[:2] + L[2]).max()
-        if support[k] >= params.min_line_support and shift <= params.max_line_shift_px:
+        # where the fitted line crosses the normals at both ends of the profiled run, outwards
+        # positive: a broken edge's rise lies up to its width outside the design edge (the
+        # outline fit averages over edges), an occluder's outline (slurry across the edge, the
+        # cutter in front of the wall) inside the pocket
+        no = -n_in[k]
+        o_end = -(ends @ L[:2] + L[2]) / (L[:2] @ no)
+        if (support[k] >= params.min_line_support and o_end.min() >= -params.max_line_shift_px
+                and o_end.max() <= params.max_line_shift_px + params.max_outward_shift_px):
             seen[k] = True
             lines[k] = L
         inliers[k] = pts[inl]
