@@ -128,10 +128,12 @@ def table(name: str, rows: list) -> str:
     return "| " + " | ".join(cells) + " |"
 
 
-HEADER = ("| set | images | features ok | corners seen, mean (min-max) | RMS px (seen, not "
-          "hidden) | max px | seen > 3 px | lines seen per image / off the edge band | dm+ pose / accepted | bias a b g [deg] X Y Z [mm] "
-          "| std | p95 rot deg / trans mm | max rot / trans | median ms features / +dm+ |\n"
-          "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+COLUMNS = ["set", "images", "features ok", "corners seen, mean (min-max)",
+           "RMS px (seen, not hidden)", "max px", "seen > 3 px",
+           "lines seen per image / off the edge band", "dm+ pose / accepted",
+           "bias a b g [deg] X Y Z [mm]", "std", "p95 rot deg / trans mm", "max rot / trans",
+           "median ms features / +dm+"]
+HEADER = "| " + " | ".join(COLUMNS) + " |\n" + "|---" * len(COLUMNS) + "|"
 
 
 def main():
