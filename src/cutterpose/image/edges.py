@@ -78,7 +78,7 @@ def _robust_line(p: np.ndarray, iterations: int = 5):
 
 def _half_max_centroids(g: np.ndarray, o0: float, step: float,
                         groups: np.ndarray | None = None, n_groups: int = 0,
-                        innermost: float = 0.0):
+                        innermost: float = 0.0, first: int = 0):
     """Sub-pixel edge position of each profile derivative ``g`` (rows): the centroid of
     ``g - g_j / 2`` over the contiguous run around the chosen peak ``j`` where ``g > g_j / 2``.
 
@@ -94,6 +94,8 @@ def _half_max_centroids(g: np.ndarray, o0: float, step: float,
     line on the fillet, fillet to face) whose strengths swap along the edge with the texture and
     the light; the strongest one jumps between them, the innermost one (where the fillet meets
     the wall, within about ``r`` of depth of the design edge, whatever the shading) does not.
+    Rises before sample ``first`` are not candidates (farther into the pocket than a line may
+    lie: there a rise is an occluder's outline, slurry over the edge or the cutter).
 
     Returns
     -------
@@ -109,6 +111,7 @@ def _half_max_centroids(g: np.ndarray, o0: float, step: float,
         gl[:, 0], gl[:, 1:] = np.inf, g[:, :-1]
         gr[:, -1], gr[:, :-1] = -np.inf, g[:, 1:]
         cand = (g >= gl) & (g > gr) & (g >= innermost * gmax[:, None])
+        cand[:, :first] = False
         j = np.where(cand.any(axis=1), np.argmax(cand, axis=1), np.argmax(g, axis=1))
         peak = g[rows_all, j]
         half = 0.5 * peak
@@ -645,7 +648,9 @@ def robust_edge_lines(img: np.ndarray, roi_origin, camera: Camera, pred_ideal: n
     if params.refine_sigma_px > 0:
         prof = smooth_rows(prof, params.refine_sigma_px / 0.25)
     o, rows = _half_max_centroids(np.diff(prof, axis=1), offsets[0] + 0.125, 0.25, which, n,
-                                   innermost=params.edge_innermost)
+                                   innermost=params.edge_innermost,
+                                   first=int(np.searchsorted(offsets[:-1] + 0.125,
+                                                             -params.max_line_shift_px)))
     pts_all = base[rows] - o[:, None] * n_in[which[rows]]
     w_all = which[rows]
     fit = []  # edges with enough points: (k, points, profiled run's ends)
@@ -656,10 +661,13 @@ def robust_edge_lines(img: np.ndarray, roi_origin, camera: Camera, pred_ideal: n
         ends = pred_ideal[k] + ts_k[k][[0, -1], None] * d[k]
         fit.append((k, pts, ends))
     ks = [f[0] for f in fit]
+    # hypotheses must cross the run's end normals within [-shift, shift + outward] px of the
+    # prediction (outwards positive): a band centred half the outward allowance out
+    mid = 0.5 * params.max_outward_shift_px
     L0, s0 = lmeds_lines([f[1] for f in fit], priors=[line_from(pred_ideal[k], n_in[k])
                                                        for k in ks],
-                         seeds=ks, gate_points=[f[2] for f in fit],
-                         gate_px=params.max_line_shift_px + params.max_outward_shift_px)
+                         seeds=ks, gate_points=[f[2] - mid * n_in[f[0]] for f in fit],
+                         gate_px=params.max_line_shift_px + 0.5 * params.max_outward_shift_px)
     Ls, ss, ws = tukey_lines([f[1] for f in fit], L0, s0)
     if params.edge_innermost > 0 and fit:
         # second pass: per profile, the rise nearest the fitted line (its innermost rise may
@@ -673,16 +681,17 @@ def robust_edge_lines(img: np.ndarray, roi_origin, camera: Camera, pred_ideal: n
         nb = -n_in[which[has]]
         den = Lp[:, 0] * nb[:, 0] + Lp[:, 1] * nb[:, 1]
         o_exp = -(Lp[:, 0] * base[has, 0] + Lp[:, 1] * base[has, 1] + Lp[:, 2]) / den
+        # only rises the first fit would call inliers (Tukey's cut at its scale)
+        gate = TUKEY_C * ss[lab[which[has]]]
         o2, r2 = _nearest_rise_centroids(g[has], offsets[0] + 0.125, 0.25, o_exp,
-                                         0.5 * params.edge_innermost, gate_px=2.0)
+                                         0.5 * params.edge_innermost, gate_px=gate)
         rows2 = np.nonzero(has)[0][r2]
         pts2 = base[rows2] - o2[:, None] * n_in[which[rows2]]
         w2 = which[rows2]
         fit2 = [(k, pts2[w2 == k], ends) for k, _, ends in fit]
         keep = [i for i, f in enumerate(fit2) if len(f[1]) >= 5]
         if keep:
-            L2, s2, ws2 = tukey_lines([fit2[i][1] for i in keep], Ls[keep],
-                                      np.maximum(ss[keep], 0.1))
+            L2, s2, ws2 = tukey_lines([fit2[i][1] for i in keep], Ls[keep], ss[keep])
             fit = [fit2[i] for i in keep]
             Ls, ss, ws = L2, s2, ws2
     inliers = {}
