@@ -364,7 +364,12 @@ def _solve(method: str, corners_px: np.ndarray, camera: Camera, holder: Holder,
         est = _solve("dm+", corners_px, camera, holder, limits, order, H)
         ideal = np.full_like(corners_px, np.nan)
         ideal[seen] = camera.undistort_px(corners_px[seen])
-        return refine_radius(est, ideal, camera, holder, ordered=order == "holder")
+        # the edge model must predict the rise the line refinement takes: the field chain's
+        # innermost rise, the paper chain's strongest
+        from .image.edge_model import EdgeLook
+
+        look = EdgeLook() if order == "holder" else EdgeLook(innermost=0.0)
+        return refine_radius(est, ideal, camera, holder, look=look, ordered=order == "holder")
     if method == "dm+" and order == "holder" and H is not None:
         est = _dm_plus_close(corners_px[seen], camera, holder, limits, H, seen.all())
         if est:
