@@ -194,6 +194,18 @@ def run_summary(out: Path) -> None:
         lines.append(f"\nrefined at least as close as the best {group} method: "
                      f"{wins[0]}/{len(seeds)} seeds in mm, {wins[1]}/{len(seeds)} in deg, "
                      f"{wins[2]}/{len(seeds)} at the holder")
+    if opencv:
+        from scipy.stats import wilcoxon
+
+        ref = np.array([table[s]["refined"][2] for s in seeds])
+        tests = []
+        for m in opencv:
+            o = np.array([table[s][m][2] for s in seeds if m in table[s]])
+            if len(o) == len(ref):
+                tests.append(f"{m} {int(np.sum(ref < o))}/{len(seeds)} (p = "
+                             f"{wilcoxon(ref, o, alternative='less').pvalue:.2g})")
+        lines.append("\nrefined closer at the holder than each OpenCV method, paired over seeds "
+                     "(one-sided Wilcoxon signed-rank): " + ", ".join(tests))
     # per seed: every method's error at the holder (mm) and in angle (deg)
     cols = ["refined"] + methods
     for i, unit in ((2, "at holder, mm"), (1, "deg")):
