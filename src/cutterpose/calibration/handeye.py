@@ -23,6 +23,12 @@ Pipeline:
        of a station's circles together and is the larger of the two. Robust loss (soft L1) for
        a first pass; stations whose whitened chi-square exceeds both the 99.9 % quantile and
        five times the median are distrusted and left out; then a plain least-squares pass.
+       This is the maximum-likelihood estimate under plate and robot noise with the robot's
+       per-station errors integrated out in closed form (exact to first order in them).
+       ``refinement="bundle"`` then solves the same problem as a bundle adjustment with those
+       errors as explicit unknowns under their prior (:func:`bundle_adjust_handeye`); the two
+       agree to ~1e-4 mm in the simulated cell, and the estimate reaches the Cramer-Rao bound
+       (``benchmarks/handeye_floor.py``, docs/RESULTS.md section 8).
     4. Covariance ``s^2 (J^T J)^-1`` of the 12 parameters (whitened Jacobian, ``s^2`` the
        reduced chi-square, never below 1), per-station residuals in px and as the station's
        plate pose in the base frame against ``Y`` (mm, deg), and a one-line verdict.
