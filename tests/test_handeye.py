@@ -23,7 +23,7 @@ from cutterpose.calibration.handeye import (
 )
 from cutterpose.calibration.intrinsics import detect_plate
 from cutterpose.cli import app
-from cutterpose.errors import DegenerateInputError, HandEyeFileError
+from cutterpose.errors import DegenerateInputError, HandEyeFileError, InputError
 from cutterpose.geometry.pose import Pose, geodesic_deg
 from cutterpose.robot.cell import RobotCell
 
@@ -181,6 +181,11 @@ def test_ml_refinements_recover_the_truth_without_noise(cam_quarter):
     assert _err(ba.T_flange_cam, cell.T_flange_cam)[1] < 1e-5
     assert _err(ba.T_base_plate, cell.T_base_plate)[0] < 1e-4
     assert np.abs(ba.flange_corrections).max() < 1e-5
+    # the calibration's bundle option gives the same transform; an unknown option is refused
+    rb = calibrate_handeye(true, pts, cell.camera, cell.plate, refinement="bundle")
+    assert _err(rb.T_flange_cam, cell.T_flange_cam)[0] < 1e-4
+    with pytest.raises(InputError, match="refinement"):
+        calibrate_handeye(true, pts, cell.camera, cell.plate, refinement="fancy")
 
 
 def test_ml_covariance_matches_monte_carlo(cam_quarter):
