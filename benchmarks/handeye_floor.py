@@ -149,14 +149,22 @@ def run(seeds: int, stations: int, draws: int, bundle_draws: int, sigma_px: floa
     agg = {"opencv": cv2.__version__, "seeds": seeds, "stations": stations, "draws": draws,
            "sigma_px": sigma_px, "robot_mm": rep_mm, "robot_deg": rep_deg,
            "per_seed": per_seed}
+    _add_p9(agg)
+    (out / "floor.json").write_text(json.dumps(agg, indent=1))
+    print(summary_table(agg))
+    (out / "floor.md").write_text(summary_table(agg) + "\n")
+
+
+def _add_p9(agg: dict) -> None:
+    """P(>= 9 wins in 10 seeds) from the per-seed win probabilities."""
+    per_seed = agg["per_seed"]
     if all("p_win_at_holder" in r for r in per_seed):
         for key in ("p_win_at_holder", "p_win_deg", "p_win_both"):
             p = np.array([r[key] for r in per_seed])
             agg[key + "_mean"] = float(p.mean())
-            agg[key.replace("p_win", "p_9_of_10")] = poisson_binomial_at_least(p, 9)
-    (out / "floor.json").write_text(json.dumps(agg, indent=1))
-    print(summary_table(agg))
-    (out / "floor.md").write_text(summary_table(agg) + "\n")
+            # fewer than 10 seeds: 10 seeds at the mean probability
+            p10 = p if len(p) >= 10 else np.full(10, p.mean())
+            agg[key.replace("p_win", "p_9_of_10")] = poisson_binomial_at_least(p10, 9)
 
 
 def summary_table(agg: dict) -> str:
@@ -233,7 +241,9 @@ def main() -> None:
                     help="print the tables of a finished run (OUT/floor.json)")
     a = ap.parse_args()
     if a.summary_only:
-        print(summary_table(json.loads((Path(a.out) / "floor.json").read_text())))
+        agg = json.loads((Path(a.out) / "floor.json").read_text())
+        _add_p9(agg)
+        print(summary_table(agg))
         return
     run(a.seeds, a.stations, a.draws, a.bundle_draws, a.sigma_px, a.robot_mm, a.robot_deg,
         Path(a.out))
