@@ -533,6 +533,17 @@ def bundle_adjust_handeye(T_base_flange: list[Pose], points_px, camera: Camera,
     bias_px : (n, N, 2) perspective bias of the centres to remove (default: predicted at the
         plate poses of the start, and again at the solution for a second solve).
     used : boolean mask of the stations to use (default all).
+
+    Returns
+    -------
+    BundleResult
+
+    Raises
+    ------
+    InputError
+        Non-positive noise levels or an unknown loss.
+    DegenerateInputError
+        Singular information (stations too alike).
     """
     plate = plate or CirclePlate()
     A = list(T_base_flange)
