@@ -774,6 +774,9 @@ def handeye_cmd(
     angle_unit: str = typer.Option(None, help="deg or rad, if the file does not state it."),
     repeatability_mm: float = typer.Option(0.03, help="Robot position noise, mm per axis."),
     repeatability_deg: float = typer.Option(0.005, help="Robot rotation noise, deg per axis."),
+    refinement: str = typer.Option("marginal", help="marginal (robot errors integrated out) "
+                                   "or bundle (robot errors as unknowns; same estimate, "
+                                   "slower): both maximum likelihood, docs/robot.md."),
     as_json: bool = typer.Option(False, "--json", help="Print the result as JSON."),
 ):
     """Eye-in-hand calibration: T_flange_cam and T_base_plate from plate images and flange
@@ -794,7 +797,7 @@ def handeye_cmd(
 
     res = handeye_from_images(_image_paths(images), poses, cam, plate, progress=progress,
                               repeatability_mm=repeatability_mm,
-                              repeatability_deg=repeatability_deg)
+                              repeatability_deg=repeatability_deg, refinement=refinement)
     save_handeye(res, out)
     if as_json:
         typer.echo(json.dumps(res.to_dict(), indent=1))
