@@ -390,6 +390,9 @@ def experiment_images_cmd(
                               "2.1 with this package's refinements and fall-backs) or "
                               "as-written (section 2.1 exactly: threshold 70, contour lines, "
                               "no refinement, no fall-back)."),
+    edge_shape: str = typer.Option("round", help="The pocket edge's break (holder drawing): "
+                                   "round, chamfer or unknown (both; the budget carries the "
+                                   "chamfer's unseen depth)."),
 ):
     """Table 2 figures of every method on an image set (trials.csv, summary.md)."""
     from rich.progress import Progress
@@ -407,8 +410,10 @@ def experiment_images_cmd(
         fail(f"--chain must be one of {', '.join(chains)}, got {chain!r}")
     with Progress(transient=True) as bar:
         task = bar.add_task("images", total=None)
+        from .pipeline import QualityLimits
+
         run_images(folder, names, out, workers=workers, limit=limit, scheduler=scheduler,
-                   params=chains[chain](),
+                   params=chains[chain](), limits=QualityLimits(edge_shape=edge_shape),
                    progress=lambda done, n: bar.update(task, completed=done, total=n))
     typer.echo(f"wrote {out}/trials.csv, summary.md, corners.csv, failures.csv")
     typer.echo((__import__("pathlib").Path(out) / "summary.md").read_text())

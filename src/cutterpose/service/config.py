@@ -103,6 +103,7 @@ class _Tolerances(_Strict):
     max_edge_bias_dof: Six | None = None
     tolerance: _BudgetTolerance | None = None
     grasp_point_mm: tuple[Finite, Finite, Finite] | None = None
+    edge_shape: Literal["unknown", "round", "chamfer"] | None = None
 
     @field_validator("range_half_width_dof", "range_tolerance_dof", "max_std_dof",
                      "max_edge_bias_dof")

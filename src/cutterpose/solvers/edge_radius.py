@@ -342,8 +342,9 @@ def refine_radius(est: PoseEstimate, ideal_px: np.ndarray, camera: Camera, holde
     R0 = rotation_from_euler_deg(*dof0[:3])
     tables = [OffsetTable(R0, dof0[3:], camera.K, holder, replace(look, shape=sh))
               for sh in shapes]
-    cost = [min(c for _, c, _ in _scan_radius(dof0, q, t, holder, camera.K, prior,
-                                              SCAN_RADII_MM)[2]) for t in tables]
+    scans = [_scan_radius(dof0, q, t, holder, camera.K, prior, SCAN_RADII_MM)[2]
+             for t in tables]
+    cost = [min(c for _, c, _ in rows) for rows in scans]
     # the first shape (the fillet, the common break) unless another fits clearly better: a
     # chamfer images at its foot, a depth offset the contour cannot tell from Z, so a chamfer
     # chosen on a tie would throw away the depth of a sharp or filleted edge
@@ -353,6 +354,11 @@ def refine_radius(est: PoseEstimate, ideal_px: np.ndarray, camera: Camera, holde
     fit = fit_pose_radius(dof0, q, camera, holder, tables[k].look, prior, table=tables[k])
     if not np.all(np.isfinite(fit.dof)):
         return PoseEstimate.failure(name, "the radius fit diverged", info=est.info)
+    # the other shapes' scans join the profile the budget weighs: a chamfer images at its foot,
+    # a pure depth offset, so every chamfer size fits about equally well with another Z; when
+    # the corners cannot tell the shapes apart, that depth range is part of the uncertainty
+    fit.profile = list(fit.profile) + [row for i, rows in enumerate(scans) if i != k
+                                       for row in rows]
     info = dict(est.info, edge_radius_mm=fit.radius_mm, radius_fit=fit,
                 edge_shape=fit.table.look.shape, shape_costs=dict(zip(shapes, cost)),
                 radius_iterations=fit.iterations, start_dof=dof0.tolist())
