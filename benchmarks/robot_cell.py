@@ -62,12 +62,18 @@ def run_handeye(seeds: int, stations: int, out: Path) -> None:
                 lost.append(f"station{i}: {e}")
         pts = np.stack(pts)
         reported = [reported[i] for i in keep]
+        # the detected centres and poses, so that other estimators can be run on the same data
+        # without rendering again (benchmarks/handeye_floor.py)
+        np.savez(out / f"data_seed{seed}.npz", points_px=pts, keep=np.array(keep),
+                 T_base_flange_reported=np.stack([a.matrix for a in reported]),
+                 T_base_flange_true=np.stack([true[i].matrix for i in keep]))
         res = calibrate_handeye(reported, pts, cam, cell.plate,
                                 names=[f"station{i}" for i in keep])
         save_handeye(res, out / f"handeye_seed{seed}.json")
         (out / f"cell_seed{seed}.json").write_text(json.dumps(cell.truth_dict()))
         e_mm, e_deg = _err(res.T_flange_cam, cell.T_flange_cam)
         rec = {"seed": seed, "refined_mm": e_mm, "refined_deg": e_deg,
+               "refined_at_holder_mm": err_at_holder(res.T_flange_cam, cell.T_flange_cam),
                "start": res.start_method, "verdict": res.verdict,
                "sd_mm": float(np.sqrt(np.trace(res.handeye.covariance[:3, :3]))),
                "sd_deg": float(np.degrees(np.sqrt(np.trace(res.handeye.covariance[3:, 3:])))),
@@ -78,7 +84,7 @@ def run_handeye(seeds: int, stations: int, out: Path) -> None:
                 rec["methods"][name] = v
                 continue
             m_mm, m_deg = _err(v[0], cell.T_flange_cam)
-            rec["methods"][name] = [m_mm, m_deg]
+            rec["methods"][name] = [m_mm, m_deg, err_at_holder(v[0], cell.T_flange_cam)]
             rows.append([seed, name, m_mm, m_deg])
         rows.append([seed, "refined", e_mm, e_deg])
         # one station's reported pose 5 mm off, in a random direction
@@ -154,12 +160,25 @@ def run_summary(out: Path) -> None:
         cand = {"refined": d["T_flange_cam"]}
         cand |= {k: v["T_flange_cam"] for k, v in d["opencv_methods"].items()
                  if not isinstance(v, str)}
+        data = out / f"data_seed{seed}.npz"
+        if data.is_file():  # the explicit bundle adjustment on the same detected centres
+            z = np.load(data)
+            cell = json.loads((out / f"cell_seed{seed}.json").read_text())
+            from cutterpose.calibration.plate import CirclePlate
+
+            ba = calibrate_handeye([Pose.from_matrix(m, "base", "flange")
+                                    for m in z["T_base_flange_reported"]], z["points_px"],
+                                   default_camera("table1"),
+                                   CirclePlate.from_dict(cell["plate"]),
+                                   refinement="bundle")
+            cand["bundle"] = ba.T_flange_cam.matrix
         table[seed] = {}
         for k, T in cand.items():
             X = Pose.from_matrix(T, "flange", "cam")
             table[seed][k] = (*_err(X, truth), err_at_holder(X, truth))
-    methods = sorted({m for t in table.values() for m in t} - {"refined"})
-    opencv = [m for m in methods if not m.endswith("-numpy")]
+    methods = sorted({m for t in table.values() for m in t} - {"refined", "bundle"})
+    methods = (["bundle"] if "bundle" in table[seeds[0]] else []) + methods
+    opencv = [m for m in methods if not m.endswith("-numpy") and m != "bundle"]
     lines = ["| method | median mm | median deg | median at holder mm | max at holder mm |",
              "|---|---|---|---|---|"]
     for m in ["refined"] + methods:
@@ -175,6 +194,29 @@ def run_summary(out: Path) -> None:
         lines.append(f"\nrefined at least as close as the best {group} method: "
                      f"{wins[0]}/{len(seeds)} seeds in mm, {wins[1]}/{len(seeds)} in deg, "
                      f"{wins[2]}/{len(seeds)} at the holder")
+    if opencv:
+        from scipy.stats import wilcoxon
+
+        ref = np.array([table[s]["refined"][2] for s in seeds])
+        tests = []
+        for m in opencv:
+            o = np.array([table[s][m][2] for s in seeds if m in table[s]])
+            if len(o) == len(ref):
+                tests.append(f"{m} {int(np.sum(ref < o))}/{len(seeds)} (p = "
+                             f"{wilcoxon(ref, o, alternative='less').pvalue:.2g})")
+        lines.append("\nrefined closer at the holder than each OpenCV method, paired over seeds "
+                     "(one-sided Wilcoxon signed-rank): " + ", ".join(tests))
+    # per seed: every method's error at the holder (mm) and in angle (deg)
+    cols = ["refined"] + methods
+    for i, unit in ((2, "at holder, mm"), (1, "deg")):
+        lines += ["", f"Per seed, error {unit}:", "",
+                  "| seed | " + " | ".join(cols) + " | best OpenCV |",
+                  "|---" * (len(cols) + 2) + "|"]
+        for s in seeds:
+            best = min((table[s][m][i] for m in opencv if m in table[s]), default=np.nan)
+            lines.append(f"| {s} | " + " | ".join(
+                f"{table[s][m][i]:.4f}" if m in table[s] else "-" for m in cols)
+                + f" | {best:.4f} |")
     text = "\n".join(lines)
     (out / "handeye_summary.md").write_text(text + "\n")
     print(text)

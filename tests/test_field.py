@@ -3,6 +3,8 @@ dm/dm+ on partial and spurious corner sets."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -144,3 +146,58 @@ def test_field_chain_refuses_noise():
     noise = np.random.default_rng(0).integers(0, 255, cam.image_size_px[::-1], dtype=np.uint8)
     with pytest.raises(FeatureError):
         detect_features(noise, cam, hol)
+
+
+def _chamfer_image(cam, hol, band_px: float = 5.0):
+    """A pocket (20 DN) in a face (200 DN) with a chamfer band ``band_px`` wide round it whose
+    grey alternates along the contour between 80 and 160 DN: where it is dark the band's
+    outer rise (to the face) is the stronger, where it is bright its inner rise (from the
+    pocket). Returns the image and the pocket corners (ideal px)."""
+    import cv2
+
+    from cutterpose.image.edges import intersect_consecutive, line_from
+    from cutterpose.image.params import signed_area
+
+    C = cam.project(POSE.apply(hol.points_holder_mm))   # no distortion worth a band's width
+    nxt = np.roll(C, -1, axis=0)
+    d = (nxt - C) / np.linalg.norm(nxt - C, axis=1, keepdims=True)
+    n_out = -np.sign(signed_area(C)) * np.column_stack([-d[:, 1], d[:, 0]])
+    outer = np.roll(intersect_consecutive(np.array(
+        [line_from(C[k] + band_px * n_out[k], n_out[k]) for k in range(len(C))])), 1, axis=0)
+    w, h = cam.image_size_px
+    S = 16
+    img = np.full((h, w), 200.0, np.float32)
+    uu = np.arange(w)[None, :] + 0 * np.arange(h)[:, None]
+    band = np.where(np.sin(uu / 25.0) > 0, 160.0, 80.0).astype(np.float32)
+    mask = np.zeros((h, w), np.uint8)
+    cv2.fillPoly(mask, [np.rint(outer * S).astype(np.int32)], 1, cv2.LINE_8, 4)
+    img[mask > 0] = band[mask > 0]
+    pocket = np.zeros((h, w), np.uint8)
+    cv2.fillPoly(pocket, [np.rint(C * S).astype(np.int32)], 1, cv2.LINE_8, 4)
+    img[pocket > 0] = 20.0
+    img = cv2.GaussianBlur(img, (0, 0), 0.8)
+    return np.clip(np.rint(img), 0, 255).astype(np.uint8), cam.undistort_px(C)
+
+
+def test_broken_edge_lines_follow_the_innermost_rise():
+    """A chamfer whose two rises swap strength along the contour: with the innermost rise
+    (the default) every line lies on the pocket's own edge; the strongest rise jumps between
+    the band's two sides and its lines are off or not seen."""
+    from cutterpose.image.edges import robust_edge_lines
+
+    cam, hol = small_camera(0.5), default_holder()
+    img, C = _chamfer_image(cam, hol)
+    params = FeatureParams.for_camera(cam)
+
+    def worst(p):
+        lines, seen, *_ = robust_edge_lines(img.astype(np.float32), (0.0, 0.0), cam, C, p)
+        nxt = np.roll(C, -1, axis=0)
+        off = [max(abs(C[k] @ lines[k, :2] + lines[k, 2]), abs(nxt[k] @ lines[k, :2]
+                                                              + lines[k, 2]))
+               for k in range(len(C)) if seen[k]]
+        return int(seen.sum()), max(off)
+
+    n_seen, off = worst(params)
+    assert n_seen == 20 and off < 1.5                       # the band is 5 px wide
+    n_seen0, off0 = worst(replace(params, edge_innermost=0.0))
+    assert n_seen0 <= 16 or off0 > 3.0

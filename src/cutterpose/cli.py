@@ -386,6 +386,13 @@ def experiment_images_cmd(
     limit: int = typer.Option(None, help="Only the first N images."),
     no_refine: bool = typer.Option(False, "--no-refine",
                                    help="The paper's lines only (no gradient refinement)."),
+    chain: str = typer.Option("field", help="Image chain: field (default), paper (section "
+                              "2.1 with this package's refinements and fall-backs) or "
+                              "as-written (section 2.1 exactly: threshold 70, contour lines, "
+                              "no refinement, no fall-back)."),
+    edge_shape: str = typer.Option("round", help="The pocket edge's break (holder drawing): "
+                                   "round, chamfer or unknown (both; the budget carries the "
+                                   "chamfer's unseen depth)."),
 ):
     """Table 2 figures of every method on an image set (trials.csv, summary.md)."""
     from rich.progress import Progress
@@ -395,10 +402,18 @@ def experiment_images_cmd(
     from .methods import parse_methods
 
     names = [m.name for m in parse_methods(methods)]
+    chains = {"field": lambda: FeatureParams(refine=not no_refine),
+              "paper": lambda: FeatureParams.paper(refine=not no_refine),
+              "as-written": lambda: FeatureParams.paper(refine=False, threshold_fallback="none",
+                                                        model_fallback="none")}
+    if chain not in chains:
+        fail(f"--chain must be one of {', '.join(chains)}, got {chain!r}")
     with Progress(transient=True) as bar:
         task = bar.add_task("images", total=None)
+        from .pipeline import QualityLimits
+
         run_images(folder, names, out, workers=workers, limit=limit, scheduler=scheduler,
-                   params=FeatureParams(refine=not no_refine),
+                   params=chains[chain](), limits=QualityLimits(edge_shape=edge_shape),
                    progress=lambda done, n: bar.update(task, completed=done, total=n))
     typer.echo(f"wrote {out}/trials.csv, summary.md, corners.csv, failures.csv")
     typer.echo((__import__("pathlib").Path(out) / "summary.md").read_text())
@@ -764,6 +779,9 @@ def handeye_cmd(
     angle_unit: str = typer.Option(None, help="deg or rad, if the file does not state it."),
     repeatability_mm: float = typer.Option(0.03, help="Robot position noise, mm per axis."),
     repeatability_deg: float = typer.Option(0.005, help="Robot rotation noise, deg per axis."),
+    refinement: str = typer.Option("marginal", help="marginal (robot errors integrated out) "
+                                   "or bundle (robot errors as unknowns; same estimate, "
+                                   "slower): both maximum likelihood, docs/robot.md."),
     as_json: bool = typer.Option(False, "--json", help="Print the result as JSON."),
 ):
     """Eye-in-hand calibration: T_flange_cam and T_base_plate from plate images and flange
@@ -784,7 +802,7 @@ def handeye_cmd(
 
     res = handeye_from_images(_image_paths(images), poses, cam, plate, progress=progress,
                               repeatability_mm=repeatability_mm,
-                              repeatability_deg=repeatability_deg)
+                              repeatability_deg=repeatability_deg, refinement=refinement)
     save_handeye(res, out)
     if as_json:
         typer.echo(json.dumps(res.to_dict(), indent=1))

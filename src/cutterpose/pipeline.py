@@ -84,6 +84,10 @@ class QualityLimits:
     #: the point (holder frame, mm) whose position the budget checks: the origin, the centre of
     #: the pocket's top plane (a holder file's grasp frame may be given instead)
     grasp_point_mm: tuple = (0.0, 0.0, 0.0)
+    #: the pocket edge's break as the holder's drawing gives it: "round" (default) or
+    #: "chamfer" (only that shape is fitted), or "unknown" (both; the budget then carries the
+    #: chamfer's depth, which the contour cannot see: every pose is refused, docs/RESULTS.md)
+    edge_shape: str = "round"
 
 
 @dataclass
@@ -364,7 +368,18 @@ def _solve(method: str, corners_px: np.ndarray, camera: Camera, holder: Holder,
         est = _solve("dm+", corners_px, camera, holder, limits, order, H)
         ideal = np.full_like(corners_px, np.nan)
         ideal[seen] = camera.undistort_px(corners_px[seen])
-        return refine_radius(est, ideal, camera, holder, ordered=order == "holder")
+        # the edge model must predict the rise the line refinement takes: the field chain's
+        # innermost rise, the paper chain's strongest
+        from .image.edge_model import EdgeLook
+
+        look = EdgeLook() if order == "holder" else EdgeLook(innermost=0.0)
+        shapes = {"unknown": ("round", "chamfer"), "round": ("round",),
+                  "chamfer": ("chamfer",)}.get(limits.edge_shape)
+        if shapes is None:
+            raise InputError(f"edge_shape must be 'unknown', 'round' or 'chamfer', got "
+                             f"{limits.edge_shape!r}")
+        return refine_radius(est, ideal, camera, holder, look=look, shapes=shapes,
+                             ordered=order == "holder")
     if method == "dm+" and order == "holder" and H is not None:
         est = _dm_plus_close(corners_px[seen], camera, holder, limits, H, seen.all())
         if est:

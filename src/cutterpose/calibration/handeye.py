@@ -23,6 +23,12 @@ Pipeline:
        of a station's circles together and is the larger of the two. Robust loss (soft L1) for
        a first pass; stations whose whitened chi-square exceeds both the 99.9 % quantile and
        five times the median are distrusted and left out; then a plain least-squares pass.
+       This is the maximum-likelihood estimate under plate and robot noise with the robot's
+       per-station errors integrated out in closed form (exact to first order in them).
+       ``refinement="bundle"`` then solves the same problem as a bundle adjustment with those
+       errors as explicit unknowns under their prior (:func:`bundle_adjust_handeye`); the two
+       agree to ~1e-4 mm in the simulated cell, and the estimate reaches the Cramer-Rao bound
+       (``benchmarks/handeye_floor.py``, docs/RESULTS.md section 8).
     4. Covariance ``s^2 (J^T J)^-1`` of the 12 parameters (whitened Jacobian, ``s^2`` the
        reduced chi-square, never below 1), per-station residuals in px and as the station's
        plate pose in the base frame against ``Y`` (mm, deg), and a one-line verdict.
@@ -72,7 +78,8 @@ from .plate import CirclePlate, ellipse_center_bias_px
 
 __all__ = ["HandEye", "HandEyeResult", "StationResidual", "calibrate_handeye",
            "handeye_from_images", "load_handeye", "save_handeye", "OPENCV_METHODS",
-           "check_station_rotations", "NUMPY_METHODS"]
+           "check_station_rotations", "NUMPY_METHODS", "BundleResult",
+           "bundle_adjust_handeye"]
 
 #: OpenCV's solvers, name -> (function, flag)
 OPENCV_METHODS = {
@@ -456,6 +463,164 @@ def _refine(prob: _Problem, X0: Pose, Y0: Pose, used: np.ndarray, loss: str):
     return X, Y, res
 
 
+@dataclass
+class BundleResult:
+    """Result of :func:`bundle_adjust_handeye`.
+
+    ``cov_flange_cam`` / ``cov_base_plate``: 6x6 (x, y, z [mm], rotation [rad] about the
+    frame's own axes, PROTOCOL.md), marginalised over the station corrections.
+    ``flange_corrections``: (n, 6) estimated errors of the reported flange poses (translation
+    [mm], rotation [rad] about the base axes; ``true = Exp(dphi) R_reported``,
+    ``t_reported + dt``). ``cost``: half the sum of squared whitened residuals.
+    """
+
+    T_flange_cam: Pose
+    T_base_plate: Pose
+    cov_flange_cam: np.ndarray
+    cov_base_plate: np.ndarray
+    flange_corrections: np.ndarray
+    cost: float
+    nfev: int
+
+
+def _predicted_bias(camera: Camera, plate: CirclePlate, A: list[Pose], X: Pose,
+                    Y: Pose) -> np.ndarray:
+    return np.stack([np.nan_to_num(ellipse_center_bias_px(camera, X.inverse() @ a.inverse() @ Y,
+                                                          plate)) for a in A])
+
+
+def _ba_sparsity(n: int, N: int):
+    """Which parameters each residual depends on: a station's 2N image rows on the 12 global
+    parameters and its own 6 corrections, its 6 prior rows on those 6 only."""
+    from scipy.sparse import lil_matrix
+
+    S = lil_matrix((n * (2 * N + 6), 12 + 6 * n), dtype=np.int8)
+    for i in range(n):
+        rows = slice(i * 2 * N, (i + 1) * 2 * N)
+        S[rows, :12] = 1
+        S[rows, 12 + 6 * i: 18 + 6 * i] = 1
+        S[n * 2 * N + 6 * i: n * 2 * N + 6 * i + 6, 12 + 6 * i: 18 + 6 * i] = 1
+    return S.tocsr()
+
+
+def bundle_adjust_handeye(T_base_flange: list[Pose], points_px, camera: Camera,
+                          X0: Pose, Y0: Pose, *, plate: CirclePlate | None = None,
+                          sigma_px: float, repeatability_mm: float,
+                          repeatability_deg: float, bias_px=None, loss: str = "soft_l1",
+                          f_scale: float = 3.0, used=None) -> BundleResult:
+    """Maximum-likelihood hand-eye calibration under plate *and* robot noise (bundle
+    adjustment).
+
+    Unknowns: ``X = T_flange_cam``, ``Y = T_base_plate`` and, per station, the 6 corrections
+    ``d_i = (dt_i, dphi_i)`` of the reported flange pose (``T_base_flange_true = (Exp(dphi_i)
+    R_i, t_i + dt_i)``, the noise model of :class:`cutterpose.robot.cell.RobotCell`). Cost:
+    ``sum_i rho(|proj(X^-1 A_i(d_i)^-1 Y) - obs_i|^2 / sigma_px^2) + d_i^T C_robot^-1 d_i``,
+    ``rho`` the robust loss on the image residuals only (the prior is Gaussian), solved by
+    ``scipy.optimize.least_squares`` with the block-sparse Jacobian (``jac_sparsity``: a
+    station's rows touch the 12 global parameters and its own 6). The covariance is the
+    inverse of the full Gauss-Newton information (12 + 6n), its ``X`` and ``Y`` blocks
+    (= the Schur complement over the corrections, i.e. marginalised), scaled by the reduced
+    chi-square when that exceeds 1. Triggs et al., "Bundle adjustment -- a modern synthesis"
+    (2000), sections 6 and 8 (gauge-free priors and marginalisation); Koide & Menegatti 2019.
+
+    Parameters
+    ----------
+    T_base_flange : the n reported flange poses.
+    points_px : (n, N, 2) observed circle centres.
+    X0, Y0 : starts (e.g. a linear method's).
+    sigma_px : the plate's detection noise (1 sigma per coordinate).
+    repeatability_mm, repeatability_deg : the robot's reporting noise (1 sigma per axis).
+    bias_px : (n, N, 2) perspective bias of the centres to remove (default: predicted at the
+        plate poses of the start, and again at the solution for a second solve).
+    used : boolean mask of the stations to use (default all).
+
+    Returns
+    -------
+    BundleResult
+
+    Raises
+    ------
+    InputError
+        Non-positive noise levels or an unknown loss.
+    DegenerateInputError
+        Singular information (stations too alike).
+    """
+    plate = plate or CirclePlate()
+    A = list(T_base_flange)
+    obs = np.asarray(points_px, float)
+    if bias_px is None:
+        # the circle centres' perspective bias, predicted at the start's plate poses, then
+        # once more at the solution (a start 1 mm off moves it by ~1e-3 px)
+        first = bundle_adjust_handeye(
+            A, obs, camera, X0, Y0, plate=plate, sigma_px=sigma_px,
+            repeatability_mm=repeatability_mm, repeatability_deg=repeatability_deg,
+            bias_px=_predicted_bias(camera, plate, A, X0, Y0), loss=loss, f_scale=f_scale,
+            used=used)
+        X0, Y0 = first.T_flange_cam, first.T_base_plate
+        bias_px = _predicted_bias(camera, plate, A, X0, Y0)
+    bias = np.asarray(bias_px, float)
+    used = np.ones(len(A), bool) if used is None else np.asarray(used, bool)
+    A = [a for a, u in zip(A, used) if u]
+    obs, bias = obs[used], bias[used]
+    n, N = len(A), plate.n_points
+    rep_rad = math.radians(repeatability_deg)
+    if sigma_px <= 0 or repeatability_mm <= 0 or rep_rad <= 0:
+        raise InputError("bundle adjustment needs positive pixel noise and robot repeatability")
+    prob = _Problem(camera, plate.points_mm, A, obs, bias, sigma_px, repeatability_mm, rep_rad)
+    prior_sd = np.array([repeatability_mm] * 3 + [rep_rad] * 3)
+
+    def unpack(x):
+        X, Y = _compose(X0, Y0, x[:12])
+        d = x[12:].reshape(n, 6)
+        RA = np.einsum("nij,njk->nik", Rotation.from_rotvec(d[:, 3:]).as_matrix(), prob.RA)
+        return X, Y, d, RA, prob.tA + d[:, :3]
+
+    w_img = np.ones(n * 2 * N)  # IRLS weights of the image rows (the prior stays quadratic)
+
+    def fun(x):
+        X, Y, d, RA, tA = unpack(x)
+        r_img = (prob.project(X, Y, RA, tA) - prob.obs).ravel() / sigma_px
+        return np.concatenate([w_img * r_img, (d / prior_sd).ravel()])
+
+    def solve(x):
+        return least_squares(fun, x, jac_sparsity=_ba_sparsity(n, N), method="trf",
+                             x_scale="jac", xtol=1e-12, ftol=1e-12, gtol=1e-12, max_nfev=100,
+                             tr_solver="lsmr", tr_options={"atol": 1e-12, "btol": 1e-12})
+
+    x = np.concatenate([np.zeros(3), X0.t_mm, np.zeros(3), Y0.t_mm, np.zeros(6 * n)])
+    nfev = 0
+    if loss == "soft_l1":
+        # robust loss on the image residuals only: least_squares' ``loss`` would act on the
+        # prior rows too and let a station's correction swallow a gross robot error, so the
+        # soft-L1 M-estimator is reached by reweighting, rho'(z) = (1 + z)^-1/2, z = (r/f)^2
+        for _ in range(4):
+            res = solve(x)
+            x, nfev = res.x, nfev + res.nfev
+            r = res.fun[: n * 2 * N] / w_img
+            w_img = (1.0 + (r / f_scale) ** 2) ** -0.25
+    elif loss != "linear":
+        raise InputError(f"unknown loss {loss!r} (soft_l1 or linear)")
+    w_img = np.ones(n * 2 * N)
+    res = solve(x)
+    nfev += res.nfev
+    X, Y, d, _, _ = unpack(res.x)
+    J = res.jac.toarray() if hasattr(res.jac, "toarray") else res.jac
+    dof = max(len(res.fun) - 12 - 6 * n, 1)
+    s2 = max(float(np.sum(res.fun ** 2)) / dof, 1.0)
+    try:
+        # 12 x 12 of the inverse information = the Schur complement over the corrections
+        H = J.T @ J
+        cov12 = s2 * np.linalg.inv(H)[:12, :12]
+    except np.linalg.LinAlgError:
+        raise DegenerateInputError("hand-eye bundle adjustment is singular") from None
+    order = [3, 4, 5, 0, 1, 2]
+    covX = _to_own(X, cov12[np.ix_(order, order)])
+    covY = _to_own(Y, cov12[np.ix_([o + 6 for o in order], [o + 6 for o in order])])
+    corr = np.zeros((len(used), 6))
+    corr[used] = d
+    return BundleResult(X, Y, covX, covY, corr, float(res.cost), nfev)
+
+
 def _robust_cost(r: np.ndarray, f: float = 3.0) -> float:
     z = (r / f) ** 2
     return float(np.sum(2.0 * (np.sqrt(1.0 + z) - 1.0)))
@@ -465,7 +630,8 @@ def calibrate_handeye(T_base_flange: list[Pose], points_px, camera: Camera,
                       plate: CirclePlate | None = None, *, names: list[str] | None = None,
                       repeatability_mm: float = 0.03, repeatability_deg: float = 0.005,
                       max_position_3sigma_mm: float = 0.3,
-                      max_angle_3sigma_deg: float = 0.03) -> HandEyeResult:
+                      max_angle_3sigma_deg: float = 0.03,
+                      refinement: str = "marginal") -> HandEyeResult:
     """Eye-in-hand calibration from flange poses and the plate's circle centres (module doc).
 
     Parameters
@@ -475,6 +641,13 @@ def calibrate_handeye(T_base_flange: list[Pose], points_px, camera: Camera,
     camera : the calibrated camera (intrinsics fixed).
     repeatability_mm, repeatability_deg : the robot's pose noise per axis (1 sigma).
     max_position_3sigma_mm, max_angle_3sigma_deg : the verdict's limits on ``T_flange_cam``.
+    refinement : ``"marginal"`` (step 3: the robot's errors integrated out analytically, each
+        station whitened by ``sigma_px^2 I + G_i C_robot G_i^T``) or ``"bundle"`` (then, on the
+        stations kept, :func:`bundle_adjust_handeye` with the robot's errors as explicit
+        unknowns under their prior). Both are the maximum-likelihood estimate under plate and
+        robot noise -- the first is the second with the corrections eliminated in closed form
+        (exact to first order in the robot's errors) -- and agree to ~1e-5 mm in the simulated
+        cell (docs/RESULTS.md, section 8); ``"bundle"`` is ~5x slower.
 
     Raises
     ------
@@ -484,6 +657,8 @@ def calibrate_handeye(T_base_flange: list[Pose], points_px, camera: Camera,
         Mismatched counts or frames, non-finite points.
     """
     plate = plate or CirclePlate()
+    if refinement not in ("marginal", "bundle"):
+        raise InputError(f"unknown hand-eye refinement {refinement!r} (marginal or bundle)")
     A = list(T_base_flange)
     for a in A:
         if (a.to_frame, a.from_frame) != ("base", "flange"):
@@ -561,6 +736,13 @@ def calibrate_handeye(T_base_flange: list[Pose], points_px, camera: Camera,
     covX = cov12[np.ix_(order, order)]
     covY = cov12[np.ix_([o + 6 for o in order], [o + 6 for o in order])]
     covX_own, covY_own = _to_own(X, covX), _to_own(Y, covY)
+    if refinement == "bundle":
+        ba = bundle_adjust_handeye(A, obs, camera, X, Y, plate=plate, sigma_px=sigma_px,
+                                   repeatability_mm=repeatability_mm,
+                                   repeatability_deg=repeatability_deg, bias_px=bias,
+                                   loss="linear", used=used)
+        X, Y, covX_own, covY_own = (ba.T_flange_cam, ba.T_base_plate, ba.cov_flange_cam,
+                                    ba.cov_base_plate)
     # 4. per-station figures
     raw = (prob.project(X, Y) - prob.obs).reshape(n, N, 2)
     rms = np.sqrt(np.mean(np.sum(raw ** 2, axis=2), axis=1))

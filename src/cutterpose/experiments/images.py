@@ -32,7 +32,7 @@ from ..geometry.camera import camera_from_dict
 from ..geometry.holder import Holder, default_holder, holder_from_dict
 from ..image import FeatureParams, detect_features, load_image
 from ..parallel import run_jobs
-from ..pipeline import measure_features
+from ..pipeline import QualityLimits, measure_features
 from .report import summarize, trial_rows, write_summary, write_trials_csv
 
 __all__ = ["load_image_set", "run_images", "corner_rms"]
@@ -77,7 +77,7 @@ def corner_rms(detected_px: np.ndarray, true_px: np.ndarray) -> float:
 
 
 def _one_image(args):
-    i, entry, folder, camera, holder, methods, params = args
+    i, entry, folder, camera, holder, methods, params, limits = args
     R = np.asarray(entry["R_cam_holder"], float)
     t = np.asarray(entry["t_cam_holder_mm"], float)
     out = {"trial": i, "rows": [], "failures": [], "corners": None, "verdicts": []}
@@ -110,7 +110,7 @@ def _one_image(args):
         info["rms_threshold_px"] = corner_rms(
             camera.distort_px(intersect_consecutive(feats.lines_threshold_ideal)), true_px)
     for m in methods:
-        meas = measure_features(feats, camera, holder, m)
+        meas = measure_features(feats, camera, holder, m, limits)
         ms = meas.timings_ms.get("solve", math.nan)
         if meas.pose is not None:
             rows = trial_rows(i, math.nan, m, R, t, meas.pose.R, meas.pose.t_mm, ms)
@@ -130,7 +130,8 @@ def _one_image(args):
 
 
 def run_images(folder, methods: list[str], out, workers: int = 1, params=None,
-               limit: int | None = None, progress=None, scheduler=None) -> list[dict]:
+               limit: int | None = None, progress=None, scheduler=None,
+               limits=None) -> list[dict]:
     """Run every method on every image of a set; write the outputs (module doc) into ``out``.
 
     Images run in this process, in ``workers`` processes or on the Dask cluster at
@@ -147,10 +148,11 @@ def run_images(folder, methods: list[str], out, workers: int = 1, params=None,
     if limit is not None:
         entries = entries[:limit]
     params = params or FeatureParams()
+    limits = limits or QualityLimits()
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     # the folder as the workers will see it: absolute, as on a shared file system
-    jobs = [(i, e, str(Path(folder).resolve()), camera, holder, list(methods), params)
+    jobs = [(i, e, str(Path(folder).resolve()), camera, holder, list(methods), params, limits)
             for i, e in enumerate(entries)]
     count = [0]
 

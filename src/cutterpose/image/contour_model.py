@@ -230,6 +230,16 @@ def _line_distances_px(H: np.ndarray, plane_lines: np.ndarray, pts: np.ndarray,
     return Li[:, 0] * pts[:, 0] + Li[:, 1] * pts[:, 1] + Li[:, 2]
 
 
+def _innermost_peak(g: np.ndarray, j_max: np.ndarray, fraction: float) -> np.ndarray:
+    """Per row of ``g``, the first local maximum (from the pocket side) reaching ``fraction``
+    of the row's maximum ``g[j_max]``; ``j_max`` where there is none."""
+    gmax = g[np.arange(len(g)), j_max]
+    cand = np.zeros(g.shape, bool)
+    cand[:, 1:-1] = ((g[:, 1:-1] >= g[:, :-2]) & (g[:, 1:-1] > g[:, 2:])
+                     & (g[:, 1:-1] >= fraction * gmax[:, None]))
+    return np.where(cand.any(axis=1), np.argmax(cand, axis=1), j_max)
+
+
 def search_outline(img: np.ndarray, roi_origin, camera: Camera, holder: Holder,
                    H0: np.ndarray, params: FeatureParams):
     """Model-guided search of the pocket outline on the gradient (field chain).
@@ -284,6 +294,16 @@ def search_outline(img: np.ndarray, roi_origin, camera: Camera, holder: Holder,
         noise = (MAD_TO_SIGMA * float(median_rows(np.abs(g_all - median_rows(g_all)[0]))[0])
                  if W >= 10 else
                  0.25 / 3.0 * float(np.median(peak[peak > 0])) if np.any(peak > 0) else 0.0)
+        if W < 20 and params.edge_innermost > 0:
+            # near the outline: the innermost rise of a broken edge, as the line fits take it
+            # (edges._half_max_centroids), not whichever of its rises is strongest here
+            ji = _innermost_peak(g, j, params.edge_innermost)
+            pi = g[np.arange(len(g)), ji]
+            # unless most innermost rises drown in the noise (a textured, stained face):
+            # then this gate takes the strongest, as a whole (mixing the two per profile
+            # would put the points on different rises)
+            if np.count_nonzero(pi > 3.0 * noise) >= 0.5 * np.count_nonzero(peak > 3.0 * noise):
+                j, peak = ji, pi
         # parabolic sub-sample peak
         jj = np.clip(j, 1, g.shape[1] - 2)
         y0, y1, y2 = (g[np.arange(len(g)), jj + e] for e in (-1, 0, 1))
@@ -306,6 +326,11 @@ def search_outline(img: np.ndarray, roi_origin, camera: Camera, holder: Holder,
                 break
             q = np.column_stack([p, np.ones(len(p))]) @ np.linalg.inv(H).T
             H1 = _fit_h_lines(ln, p, np.sqrt(w) / np.abs(q[:, 2]), system)
+            moved = np.abs(_apply_h(H1, model) - C).max()
+            if not np.isfinite(moved) or moved > 2.0 * max(params.search_gates_px):
+                # the points do not hold the fit (few edge points, lumps and stains over much
+                # of the outline): it left the search's reach, keep the previous fit
+                break
             r = _line_distances_px(H1, plane_lines, p, k_ok)
             H = H1
             s = min(s, mad_scale(r[w > 0], 0.1))

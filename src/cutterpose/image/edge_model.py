@@ -103,12 +103,15 @@ class EdgeLook:
     blur_sigma_px: float = 0.8     #: lens blur (Gaussian std)
     profile_sigma_px: float = 0.8  #: smoothing of the refinement profiles (refine_sigma_px)
     ring_radius_mm: float = 0.0    #: 0: point light at the camera centre
+    #: which rise the line refinement takes (``FeatureParams.edge_innermost``): 0 the strongest,
+    #: f > 0 the first from the pocket side reaching f of the strongest (the field chain)
+    innermost: float = 0.3
 
     def __post_init__(self):
         if self.shape not in ("round", "chamfer"):
             raise InputError(f"edge shape must be 'round' or 'chamfer', got {self.shape!r}")
         for k in ("face_albedo", "specular", "shininess", "wall_albedo", "pocket_level",
-                  "blur_sigma_px", "profile_sigma_px", "ring_radius_mm"):
+                  "blur_sigma_px", "profile_sigma_px", "ring_radius_mm", "innermost"):
             v = getattr(self, k)
             if not np.isfinite(v) or v < 0:
                 raise InputError(f"EdgeLook.{k} must be finite and >= 0, got {v!r}")
@@ -364,7 +367,8 @@ def _raw_from_section(section, view: EdgeView, r: np.ndarray, w: np.ndarray) -> 
     return np.where(x < w_end[..., None], beyond[..., None, None], raw)
 
 
-def gradient_edge_px(w_px: np.ndarray, blurred: np.ndarray, with_rival: bool = False):
+def gradient_edge_px(w_px: np.ndarray, blurred: np.ndarray, with_rival: bool = False,
+                     innermost: float = 0.0):
     """Half-maximum centroid of the profiles' derivative (the refinement's edge point), px.
 
     Unlike the refinement, no row is rejected against the others: every row is one model
@@ -372,15 +376,29 @@ def gradient_edge_px(w_px: np.ndarray, blurred: np.ndarray, with_rival: bool = F
     ``with_rival``, also the position and relative height of the strongest other rise (a
     specular line on the fillet can make a second edge almost as strong as the first: the
     refinement may then take either, :func:`edge_offsets_mm`).
+
+    ``innermost`` as in :func:`cutterpose.image.edges._half_max_centroids`: 0 the strongest
+    rise; ``f`` > 0 the first local maximum from the pocket side (small ``w``) reaching ``f`` of
+    the strongest, its run ending at the valley before the next rise.
     """
     h = w_px[1] - w_px[0]
     g = np.diff(blurred, axis=-1)
     wg = w_px[:-1] + 0.5 * h
-    j = np.argmax(g, axis=-1)
-    peak = np.take_along_axis(g, j[..., None], axis=-1)
-    half = 0.5 * peak
     idx = np.arange(g.shape[-1])
-    below = g <= half
+    if innermost > 0 and g.shape[-1] >= 3:
+        gl = np.concatenate([np.full(g.shape[:-1] + (1,), np.inf), g[..., :-1]], axis=-1)
+        gr = np.concatenate([g[..., 1:], np.full(g.shape[:-1] + (1,), -np.inf)], axis=-1)
+        cand = (g >= gl) & (g > gr) & (g >= innermost * g.max(axis=-1, keepdims=True))
+        j = np.where(cand.any(axis=-1), np.argmax(cand, axis=-1), np.argmax(g, axis=-1))
+        peak = np.take_along_axis(g, j[..., None], axis=-1)
+        half = 0.5 * peak
+        valley = (g <= gl) & (g < gr) & (g < 0.8 * peak)
+        below = (g <= half) | valley
+    else:
+        j = np.argmax(g, axis=-1)
+        peak = np.take_along_axis(g, j[..., None], axis=-1)
+        half = 0.5 * peak
+        below = g <= half
     left = np.where(below & (idx < j[..., None]), idx, -1).max(axis=-1)
     right = np.where(below & (idx > j[..., None]), idx, g.shape[-1]).min(axis=-1)
     inside = (idx > left[..., None]) & (idx < right[..., None])
@@ -418,9 +436,9 @@ def edge_offsets_mm(radius_mm, view: EdgeView, look: EdgeLook = EdgeLook(),
     """
     w, _, blurred = profiles(radius_mm, view, look)
     if with_rival:
-        wp, w2, ratio = gradient_edge_px(w, blurred, with_rival=True)
+        wp, w2, ratio = gradient_edge_px(w, blurred, with_rival=True, innermost=look.innermost)
     else:
-        wp = gradient_edge_px(w, blurred)
+        wp = gradient_edge_px(w, blurred, innermost=look.innermost)
         w2, ratio = np.full(wp.shape, np.nan), np.zeros(wp.shape)
     r = np.asarray(radius_mm, float)
     r = np.broadcast_to(r, wp.shape)
@@ -492,7 +510,7 @@ def radius_offsets_mm(radii_mm, view: EdgeView, look: EdgeLook = EdgeLook()) -> 
         w = GRID_STEP_PX * np.arange(-m, m + 1)
         w32 = w.astype(np.float32)
         b = _convolve_rows(_raw_from_section(section, view, rr, w), kern)
-        out[..., j] = gradient_edge_px(w32, b)[..., 0] / view.a_s
+        out[..., j] = gradient_edge_px(w32, b, innermost=look.innermost)[..., 0] / view.a_s
     return out
 
 
@@ -523,10 +541,14 @@ def look_offsets_mm(radius_mm: float, view: EdgeView, looks, rival_look: int | N
             blurred[i] = b[k]
     blurred = np.stack(blurred)                     # (L, N, 2, 1, G)
     a_s = view.a_s[None, ..., None]
-    wp = gradient_edge_px(w32, blurred)
+    inner = np.array([lk.innermost for lk in looks])
+    wp = np.empty(blurred.shape[:-1])
+    for f in np.unique(inner):                      # the rise each look's refinement takes
+        wp[inner == f] = gradient_edge_px(w32, blurred[inner == f], innermost=float(f))
     rival = None
     if rival_look is not None:
-        _, w2, ratio = gradient_edge_px(w32, blurred[rival_look], with_rival=True)
+        _, w2, ratio = gradient_edge_px(w32, blurred[rival_look], with_rival=True,
+                                        innermost=looks[rival_look].innermost)
         rival = ((w2 / view.a_s[..., None])[..., 0], ratio[..., 0])
     return (wp / a_s)[..., 0], rival
 

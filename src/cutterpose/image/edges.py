@@ -77,27 +77,55 @@ def _robust_line(p: np.ndarray, iterations: int = 5):
 
 
 def _half_max_centroids(g: np.ndarray, o0: float, step: float,
-                        groups: np.ndarray | None = None, n_groups: int = 0):
+                        groups: np.ndarray | None = None, n_groups: int = 0,
+                        innermost: float = 0.0, first: int = 0):
     """Sub-pixel edge position of each profile derivative ``g`` (rows): the centroid of
-    ``g - g_max / 2`` over the contiguous run around the maximum where ``g > g_max / 2``.
+    ``g - g_j / 2`` over the contiguous run around the chosen peak ``j`` where ``g > g_j / 2``.
 
     For a symmetric point-spread function the derivative of the edge profile is symmetric about
     the edge, and so is its half-maximum run: the centroid is the edge, for narrow (Gaussian) and
     flat-topped (defocus disk) blur alike. Rows whose run touches the window's end, or whose
-    maximum is weak (< 0.3 of the median maximum), are rejected.
+    peak is weak (< 0.3 of the median peak), are rejected.
+
+    ``innermost`` = 0: the peak is the row's maximum (the strongest rise). ``innermost`` =
+    ``f`` > 0 (field chain): the first local maximum from the window's start (the pocket side)
+    reaching ``f`` of the row's maximum, and its run ends at the valley before the next rise.
+    A broken edge (fillet or chamfer) images as two or more rises (wall to fillet, a specular
+    line on the fillet, fillet to face) whose strengths swap along the edge with the texture and
+    the light; the strongest one jumps between them, the innermost one (where the fillet meets
+    the wall, within about ``r`` of depth of the design edge, whatever the shading) does not.
+    Rises before sample ``first`` are not candidates (farther into the pocket than a line may
+    lie: there a rise is an occluder's outline, slurry over the edge or the cutter).
 
     Returns
     -------
     offsets : edge positions of the accepted rows; rows : their indices.
     """
     G = g.shape[1]
-    j = np.argmax(g, axis=1)
-    peak = g[np.arange(len(g)), j]
-    half = 0.5 * peak
+    rows_all = np.arange(len(g))
     # small integer types: these masks and index arrays are (profiles x samples)
     idx = np.arange(G, dtype=np.int16)
-    jj = j.astype(np.int16)[:, None]
-    below = g <= half[:, None]
+    if innermost > 0 and G >= 3:
+        gmax = g.max(axis=1)
+        gl, gr = np.empty_like(g), np.empty_like(g)
+        gl[:, 0], gl[:, 1:] = np.inf, g[:, :-1]
+        gr[:, -1], gr[:, :-1] = -np.inf, g[:, 1:]
+        cand = (g >= gl) & (g > gr) & (g >= innermost * gmax[:, None])
+        cand[:, :first] = False
+        j = np.where(cand.any(axis=1), np.argmax(cand, axis=1), np.argmax(g, axis=1))
+        peak = g[rows_all, j]
+        half = 0.5 * peak
+        jj = j.astype(np.int16)[:, None]
+        # the run also stops at a valley (a local minimum below 0.8 of the peak) towards the
+        # next rise, so that two rises merged above half height are not averaged
+        valley = (g <= gl) & (g < gr) & (g < 0.8 * peak[:, None])
+        below = (g <= half[:, None]) | valley
+    else:
+        j = np.argmax(g, axis=1)
+        peak = g[rows_all, j]
+        half = 0.5 * peak
+        jj = j.astype(np.int16)[:, None]
+        below = g <= half[:, None]
     left = np.where(below & (idx < jj), idx, np.int16(-1)).max(axis=1)
     right = np.where(below & (idx > jj), idx, np.int16(G)).min(axis=1)
     inside = (idx > left[:, None]) & (idx < right[:, None])
@@ -112,6 +140,51 @@ def _half_max_centroids(g: np.ndarray, o0: float, step: float,
         ok &= peak > 0.3 * np.median(peak[ok])
     rows = np.nonzero(ok)[0]
     return o0 + step * cen[rows], rows
+
+
+def _nearest_rise_centroids(g: np.ndarray, o0: float, step: float, o_expected: np.ndarray,
+                            fraction: float, gate_px: float):
+    """Per row of ``g``: the rise (a local maximum reaching ``fraction`` of the row's maximum)
+    whose peak is nearest ``o_expected`` (same units as the offsets ``o0 + step * index``), and
+    its half-maximum centroid as in :func:`_half_max_centroids` (the run split at valleys).
+    Rows with no rise within ``gate_px`` of ``o_expected`` are left out.
+
+    Returns
+    -------
+    offsets : edge positions of the kept rows; rows : their indices.
+    """
+    G = g.shape[1]
+    gl, gr = np.empty_like(g), np.empty_like(g)
+    gl[:, 0], gl[:, 1:] = np.inf, g[:, :-1]
+    gr[:, -1], gr[:, :-1] = -np.inf, g[:, 1:]
+    gmax = g.max(axis=1)
+    cand = (g >= gl) & (g > gr) & (g >= fraction * gmax[:, None]) & (g > 0)
+    pos = o0 + step * np.arange(G)
+    dist = np.where(cand, np.abs(pos[None, :] - o_expected[:, None]), np.inf)
+    j = np.argmin(dist, axis=1)
+    near = dist[np.arange(len(g)), j] <= gate_px
+    cen, ok = _run_centroids(g, j, gl, gr)
+    rows = np.nonzero(ok & near)[0]
+    return o0 + step * cen[rows], rows
+
+
+def _run_centroids(g: np.ndarray, j: np.ndarray, gl: np.ndarray, gr: np.ndarray):
+    """Centroid (sample index) of ``g - g_j / 2`` over the run round peak ``j`` of each row
+    where ``g > g_j / 2``, stopped at valleys (local minima below 0.8 of the peak); ``ok``
+    where the run stays inside the row."""
+    G = g.shape[1]
+    idx = np.arange(G, dtype=np.int16)
+    peak = g[np.arange(len(g)), j]
+    half = 0.5 * peak
+    jj = j.astype(np.int16)[:, None]
+    below = (g <= half[:, None]) | ((g <= gl) & (g < gr) & (g < 0.8 * peak[:, None]))
+    left = np.where(below & (idx < jj), idx, np.int16(-1)).max(axis=1)
+    right = np.where(below & (idx > jj), idx, np.int16(G)).min(axis=1)
+    inside = (idx > left[:, None]) & (idx < right[:, None])
+    w = np.where(inside, g - half[:, None], 0.0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        cen = (w @ np.arange(G, dtype=w.dtype)).astype(float) / w.sum(axis=1)
+    return cen, (left >= 0) & (right < G) & (peak > 0) & np.isfinite(cen)
 
 
 def refine_lines(image: np.ndarray, roi_origin: np.ndarray, camera: Camera,
@@ -574,7 +647,10 @@ def robust_edge_lines(img: np.ndarray, roi_origin, camera: Camera, pred_ideal: n
     prof = sample_profiles(img, roi_origin, camera, base, -n_in[which], offsets)
     if params.refine_sigma_px > 0:
         prof = smooth_rows(prof, params.refine_sigma_px / 0.25)
-    o, rows = _half_max_centroids(np.diff(prof, axis=1), offsets[0] + 0.125, 0.25, which, n)
+    o, rows = _half_max_centroids(np.diff(prof, axis=1), offsets[0] + 0.125, 0.25, which, n,
+                                   innermost=params.edge_innermost,
+                                   first=int(np.searchsorted(offsets[:-1] + 0.125,
+                                                             -params.max_line_shift_px)))
     pts_all = base[rows] - o[:, None] * n_in[which[rows]]
     w_all = which[rows]
     fit = []  # edges with enough points: (k, points, profiled run's ends)
@@ -585,20 +661,60 @@ def robust_edge_lines(img: np.ndarray, roi_origin, camera: Camera, pred_ideal: n
         ends = pred_ideal[k] + ts_k[k][[0, -1], None] * d[k]
         fit.append((k, pts, ends))
     ks = [f[0] for f in fit]
+    # hypotheses must cross the run's end normals within [-shift, shift + outward] px of the
+    # prediction (outwards positive): a band centred half the outward allowance out
+    mid = 0.5 * params.max_outward_shift_px
     L0, s0 = lmeds_lines([f[1] for f in fit], priors=[line_from(pred_ideal[k], n_in[k])
                                                        for k in ks],
-                         seeds=ks, gate_points=[f[2] for f in fit],
-                         gate_px=params.max_line_shift_px)
+                         seeds=ks, gate_points=[f[2] - mid * n_in[f[0]] for f in fit],
+                         gate_px=params.max_line_shift_px + 0.5 * params.max_outward_shift_px)
     Ls, ss, ws = tukey_lines([f[1] for f in fit], L0, s0)
+    if params.edge_innermost > 0 and fit:
+        # second pass, on the profiles whose first point is not an inlier: the rise nearest
+        # the fitted line (the innermost rise may have been too weak there, or a blemish
+        # inside it), so that each line follows one and the same rise of a broken edge
+        lab = np.full(n, -1)
+        lab[ks] = np.arange(len(ks))
+        redo = lab[which] >= 0
+        row_k = {k: rows[w_all == k] for k in ks}
+        for e, (k, _, _) in enumerate(fit):
+            redo[row_k[k][ws[e] > 0]] = False
+        r_idx = np.nonzero(redo)[0]
+        if len(r_idx):
+            e_r = lab[which[r_idx]]
+            Lp, nb = Ls[e_r], -n_in[which[r_idx]]
+            o_exp = -(Lp[:, 0] * base[r_idx, 0] + Lp[:, 1] * base[r_idx, 1] + Lp[:, 2]) \
+                / (Lp[:, 0] * nb[:, 0] + Lp[:, 1] * nb[:, 1])
+            # only rises the first fit would call inliers (Tukey's cut at its scale)
+            o2, r2 = _nearest_rise_centroids(np.diff(prof[r_idx], axis=1), offsets[0] + 0.125,
+                                             0.25, o_exp, 0.5 * params.edge_innermost,
+                                             gate_px=TUKEY_C * ss[e_r])
+            rows2 = r_idx[r2]
+            pts2 = base[rows2] - o2[:, None] * n_in[which[rows2]]
+            w2 = which[rows2]
+            grow = [e for e, f in enumerate(fit) if np.any(w2 == f[0])]
+            if grow:
+                merged = [np.vstack([fit[e][1][ws[e] > 0], pts2[w2 == fit[e][0]]])
+                          for e in grow]
+                L2, s2, ws2 = tukey_lines(merged, Ls[grow], ss[grow])
+                ws = list(ws)
+                for i, e in enumerate(grow):
+                    fit[e] = (fit[e][0], merged[i], fit[e][2])
+                    Ls[e], ss[e], ws[e] = L2[i], s2[i], ws2[i]
     inliers = {}
     for (k, pts, ends), L, s_k, w in zip(fit, Ls, ss, ws):
         inl = w > 0
         ts = ts_k[k]
         support[k] = np.count_nonzero(inl) * params.refine_step_px / max(ts[-1] - ts[0], 1.0)
         scale[k] = s_k
-        # the fitted line's distance to the prediction at both ends of the profiled run
-        shift = np.abs(ends @ L[:2] + L[2]).max()
-        if support[k] >= params.min_line_support and shift <= params.max_line_shift_px:
+        # where the fitted line crosses the normals at both ends of the profiled run, outwards
+        # positive: a broken edge's rise lies up to its width outside the design edge (the
+        # outline fit averages over edges), an occluder's outline (slurry across the edge, the
+        # cutter in front of the wall) inside the pocket
+        no = -n_in[k]
+        o_end = -(ends @ L[:2] + L[2]) / (L[:2] @ no)
+        if (support[k] >= params.min_line_support and o_end.min() >= -params.max_line_shift_px
+                and o_end.max() <= params.max_line_shift_px + params.max_outward_shift_px):
             seen[k] = True
             lines[k] = L
         inliers[k] = pts[inl]

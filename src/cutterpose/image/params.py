@@ -78,6 +78,12 @@ class FeatureParams:
     min_line_support: float = 0.3         #: a line is seen if inliers cover this much of it
     min_outline_support: float = 0.6      #: the outline fit must rest on edges along this much
     max_line_shift_px: float = 2.5        #: a seen line stays this close to the outline fit
+    #: ... plus this much outwards (a rounded or chamfered edge images outside the design edge
+    #: by up to its width, unevenly round the contour, which the outline fit averages)
+    max_outward_shift_px: float = 4.0
+    #: which rise across a broken (rounded, chamfered) edge is the edge: 0 = the strongest;
+    #: f > 0 = the innermost (pocket-side) rise reaching f of the strongest (edges.py)
+    edge_innermost: float = 0.3
 
     @classmethod
     def paper(cls, **changes) -> FeatureParams:
@@ -102,7 +108,8 @@ class FeatureParams:
                        search_gates_px=tuple(max(3.0, g * factor)
                                              for g in self.search_gates_px),
                        search_step_px=max(2.0, self.search_step_px * factor),
-                       corner_trim_px=max(4.0, self.corner_trim_px * factor))
+                       corner_trim_px=max(4.0, self.corner_trim_px * factor),
+                       max_outward_shift_px=self.max_outward_shift_px * factor)
 
 
 @dataclass

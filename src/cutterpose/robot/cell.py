@@ -130,6 +130,25 @@ class RobotCell:
         return render_plate(self.camera, self.camera_view(T_base_flange, self.T_base_plate),
                             self.plate, settings=settings, rng=rng)
 
+    def plate_points(self, T_base_flange: list[Pose], rng: np.random.Generator | None = None,
+                     sigma_px: float = 0.0) -> np.ndarray:
+        """(n, N, 2) circle centres the detector would give, without rendering: each circle's
+        image-ellipse centre (projected centre + perspective bias,
+        :func:`cutterpose.calibration.plate.ellipse_center_bias_px`) seen from the true flange
+        poses, plus N(0, sigma_px) per coordinate (the measured detection noise). For Monte
+        Carlo studies of the hand-eye calibration (``benchmarks/handeye_floor.py``)."""
+        from ..calibration.plate import ellipse_center_bias_px
+
+        out = []
+        for a in T_base_flange:
+            view = self.camera_view(a, self.T_base_plate)
+            ctr = self.camera.project(view.apply(self.plate.points_mm))
+            out.append(ctr + ellipse_center_bias_px(self.camera, view, self.plate))
+        pts = np.stack(out)
+        if sigma_px > 0:
+            pts = pts + (rng or np.random.default_rng()).normal(0.0, sigma_px, pts.shape)
+        return pts
+
     def truth_dict(self) -> dict:
         return {"T_flange_cam": self.T_flange_cam.matrix.tolist(),
                 "T_base_plate": self.T_base_plate.matrix.tolist(),

@@ -169,9 +169,15 @@ def locate(measurement, handeye: HandEye | str | Path, T_base_flange: Pose | str
         v = GraspVerdict("retake", f"measurement refused: {reason}", refusal_hint(reason),
                          tolerance=tolerance or GraspTolerance())
         return RobotResult(pc_A, pc_X, pc_bc, None, None, None, v, acc)
-    cov_dof = measurement_covariance(measurement, camera, holder)
     pose = measurement.pose.with_frames("cam", "holder")
-    C_m = cov_from_dof(pose, cov_dof) if cov_dof is not None else np.full((6, 6), np.nan)
+    C_own = getattr(measurement, "covariance_cam", None)
+    if C_own is not None and np.all(np.isfinite(C_own)):
+        # the measurement's error budget (noise, edge radius, edge model), about the holder's
+        # own axes: the full covariance, correlations included
+        C_m = cov_from_own_axes(pose, np.asarray(C_own, float))
+    else:
+        cov_dof = measurement_covariance(measurement, camera, holder)
+        C_m = cov_from_dof(pose, cov_dof) if cov_dof is not None else np.full((6, 6), np.nan)
     finite = np.all(np.isfinite(C_m))
     pc_m = PoseCov(pose, C_m if finite else np.zeros((6, 6)))
     pc_bh = pc_bc @ pc_m

@@ -54,6 +54,7 @@ from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
+from ..budget import Tolerance
 from ..calibration.handeye import HandEye, load_handeye
 from ..errors import CellFileError, CutterposeError
 from ..geometry.camera import Camera, default_camera
@@ -73,10 +74,20 @@ BUNDLED_CELL = "cell_table1.toml"
 
 Positive = Annotated[float, Field(gt=0, allow_inf_nan=False)]
 Six = Annotated[tuple[float, float, float, float, float, float], Field()]
+Finite = Annotated[float, Field(allow_inf_nan=False)]
 
 
 class _Strict(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class _BudgetTolerance(_Strict):
+    """The error budget's tolerance (:class:`cutterpose.budget.Tolerance`): 3-sigma position at
+    the grasp point [mm] and rotation [deg] above which a measurement is refused."""
+
+    position_mm: Positive = 1.0
+    angle_deg: Positive = 0.3
+    k_sigma: Positive = 3.0
 
 
 class _Tolerances(_Strict):
@@ -90,6 +101,9 @@ class _Tolerances(_Strict):
     range_tolerance_dof: Six | None = None
     max_std_dof: Six | None = None
     max_edge_bias_dof: Six | None = None
+    tolerance: _BudgetTolerance | None = None
+    grasp_point_mm: tuple[Finite, Finite, Finite] | None = None
+    edge_shape: Literal["unknown", "round", "chamfer"] | None = None
 
     @field_validator("range_half_width_dof", "range_tolerance_dof", "max_std_dof",
                      "max_edge_bias_dof")
@@ -284,6 +298,8 @@ def load_cell(path: str | Path | None = None, env: dict | None = None,
     except (CutterposeError, ValueError) as e:
         raise field_error("robot", e) from None
     overrides = {k: v for k, v in cf.tolerances.model_dump().items() if v is not None}
+    if "tolerance" in overrides:
+        overrides["tolerance"] = Tolerance(**overrides["tolerance"])
     limits = QualityLimits(**overrides)
     s = cf.service
     data_dir = env.get(DATA_DIR_ENV) or s.data_dir or "cutterpose-data"

@@ -66,9 +66,11 @@ __all__ = ["RadiusPrior", "RadiusFit", "fit_pose_radius", "refine_radius", "solv
 
 #: another edge shape replaces the fillet only when its scan cost is below this fraction
 SHAPE_MARGIN = 0.7
-#: a shape screened on the offset grid is scanned exactly when its cost is below this fraction
-#: of the first shape's (well above SHAPE_MARGIN: the grid's cost error is a few percent)
-SCREEN_MARGIN = 0.9
+#: a shape screened on the offset grid is scanned again on exact offsets unless its scan cost
+#: exceeds the first shape's by this many units of the budget's profile weight (twice the
+#: e^-25 of the weight itself: the grid's cost is within a few percent, and such a shape
+#: neither wins nor weighs in the budget)
+SCREEN_EXPONENT = 50.0
 #: fit on the shipped offset grid (``OffsetTable(tabulated=True)``) rather than on the exact
 #: offsets: faster, but the grid blurs the jumps of delta(r) and the fit moves by up to a few
 #: tenths of a millimetre on images where r and Z are confounded (edge_model.md, "Cost")
@@ -406,13 +408,18 @@ def refine_radius(est: PoseEstimate, ideal_px: np.ndarray, camera: Camera, holde
         return t, sc, min(c for _, c, _ in sc[2])
 
     fast = TABULATED_TABLES if tabulated is None else tabulated
-    tables, scans, cost = (list(x) for x in zip(scanned(shapes[0], fast)))
+    t, sc, c = scanned(shapes[0], fast)
+    tables, scans, cost = [t], [sc], [c]
+    # a screened shape is kept from the grid only when its rows weigh nothing in the budget's
+    # radius profile (radius_profile_cov: exp(-(cost - min) (2 n - 7) / (2 min)) < e^-25)
+    n_seen = int(np.isfinite(q).all(axis=1).sum())
+    screen_cost = cost[0] * (1.0 + SCREEN_EXPONENT / max(2 * n_seen - 7, 1))
     for sh in shapes[1:]:
-        # the other shapes are screened on the shipped offset grid (~1 ms instead of ~15 ms;
-        # its offsets are within ~0.01 mm, its scan cost within a few percent); only one that
-        # comes near winning is scanned on the exact table, so the fit always uses one
+        # the other shapes are screened on the shipped offset grid (~1 ms instead of ~10 ms;
+        # its offsets are within ~0.01 mm, its scan cost within a few percent); one that could
+        # win or weigh in the budget's radius profile is scanned again on exact offsets
         t, sc, c = scanned(sh, True)
-        if t.tabulated and not fast and c <= SCREEN_MARGIN * cost[0]:
+        if t.tabulated and not fast and c <= screen_cost:
             t, sc, c = scanned(sh, False)
         tables.append(t)
         scans.append(sc)
@@ -427,6 +434,11 @@ def refine_radius(est: PoseEstimate, ideal_px: np.ndarray, camera: Camera, holde
                           scan=scans[k])
     if not np.all(np.isfinite(fit.dof)):
         return PoseEstimate.failure(name, "the radius fit diverged", info=est.info)
+    # the other shapes' scans join the profile the budget weighs: a chamfer images at its foot,
+    # a pure depth offset, so every chamfer size fits about equally well with another Z; when
+    # the corners cannot tell the shapes apart, that depth range is part of the uncertainty
+    fit.profile = list(fit.profile) + [row for i, sc in enumerate(scans) if i != k
+                                       for row in sc[2]]
     info = dict(est.info, edge_radius_mm=fit.radius_mm, radius_fit=fit,
                 edge_shape=fit.table.look.shape, shape_costs=dict(zip(shapes, cost)),
                 radius_iterations=fit.iterations, start_dof=dof0.tolist())
