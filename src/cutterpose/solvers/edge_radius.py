@@ -141,17 +141,33 @@ def _rotation_and_derivatives(dof):
     return Rz @ Ry @ Rx, np.stack([Rz @ Ry @ dRx, Rz @ dRy @ Rx, dRz @ Ry @ Rx]) * k
 
 
+def _project(R, dof, delta, table: OffsetTable, holder: Holder, K):
+    """Model corners (N, 3), camera-frame points and ideal pixels (N, 2) for offsets ``delta``."""
+    P = model_corners_mm(holder, delta, table.view.outward)
+    X = P @ R.T + dof[3:]
+    return P, X, (X @ K.T)[:, :2] / X[:, 2:3]
+
+
+def _pixels(dof, r, table: OffsetTable, holder: Holder, K):
+    """The model pixels of :func:`_model` without the Jacobian (the minimiser's residual calls,
+    most of them at trial points whose Jacobian is never asked for)."""
+    a, b, g = np.radians(dof[:3])
+    ca, sa, cb, sb, cg, sg = np.cos(a), np.sin(a), np.cos(b), np.sin(b), np.cos(g), np.sin(g)
+    R = (np.array([[cg, -sg, 0], [sg, cg, 0], [0, 0, 1]])
+         @ np.array([[cb, 0, sb], [0, 1, 0], [-sb, 0, cb]])
+         @ np.array([[1, 0, 0], [0, ca, -sa], [0, sa, ca]]))
+    return _project(R, dof, table(r)[0], table, holder, K)[2]
+
+
 def _model(dof, r, table: OffsetTable, holder: Holder, K):
     """Model pixels (N, 2), their Jacobian (2N, 7) w.r.t. (DOFs, r) and the model corners
     (N, 3). (The pose part is :func:`cutterpose.geometry.pose.pixel_jacobian` for one pose,
     written out: this is the solver's inner loop.)"""
     R, dR = _rotation_and_derivatives(dof)
     delta, slope = table(r)
-    P = model_corners_mm(holder, delta, table.view.outward)
-    X = P @ R.T + dof[3:]
+    P, X, uv = _project(R, dof, delta, table, holder, K)
     Z = X[:, 2]
     fx, sk, fy = K[0, 0], K[0, 1], K[1, 1]
-    uv = (X @ K.T)[:, :2] / Z[:, None]
     Jt = np.zeros((len(P), 2, 3))                                         # d px / d X_cam
     Jt[:, 0, 0], Jt[:, 0, 1] = fx / Z, sk / Z
     Jt[:, 0, 2] = -(fx * X[:, 0] + sk * X[:, 1]) / Z ** 2
@@ -316,26 +332,18 @@ def fit_pose_radius(dof0, ideal_px: np.ndarray, camera: Camera, holder: Holder,
     x = np.r_[dof, r]
     lo = np.r_[np.full(6, -np.inf), prior.min_mm]
     hi = np.r_[np.full(6, np.inf), prior.max_mm]
-    last: dict = {}
-
-    def model_at(x_):  # least_squares asks for the residual and the Jacobian at the same x
-        key = x_.tobytes()
-        if last.get("key") != key:
-            last["key"], last["out"] = key, _model(x_[:6], x_[6], table, holder, K)
-        return last["out"]
-
     for pass_ in range(2):
         if pass_:
             sig_end = model_offset_spread(table, x[6], camera, holder, x[:6], ())[1]
         W = _whitening(s, sig_end, table, J[:, 3:6], R0) * seen[:, None, None]
 
         def fun(x_, W=W):
-            uv_ = model_at(x_)[0]
+            uv_ = _pixels(x_[:6], x_[6], table, holder, K)
             z_ = np.einsum("nij,nj->ni", W, uv_ - q).ravel()
             return np.r_[z_, (x_[6] - prior.mean_mm) * inv_sr]
 
         def jac(x_, W=W):
-            J_ = model_at(x_)[1]
+            J_ = _model(x_[:6], x_[6], table, holder, K)[1]
             Jw_ = np.einsum("nij,njk->nik", W, J_.reshape(n, 2, 7)).reshape(-1, 7)
             return np.vstack([Jw_, np.r_[np.zeros(6), inv_sr]])
 
