@@ -62,7 +62,9 @@ References:
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import asdict, dataclass, replace
+from functools import cache
+from importlib import resources
 
 import numpy as np
 from scipy import fft as sp_fft
@@ -72,7 +74,9 @@ from ..errors import InputError
 from ..geometry.holder import Holder
 
 __all__ = ["EdgeLook", "EdgeView", "LOOK_VARIANTS", "edge_views", "profiles", "gradient_edge_px",
-           "edge_offsets_mm", "OffsetTable", "model_corners_mm", "corner_offset_jacobian"]
+           "edge_offsets_mm", "OffsetTable", "model_corners_mm", "corner_offset_jacobian",
+           "build_offset_grid", "tabulated_w_px", "OFFSET_GRID_FILE", "look_offsets_mm",
+           "radius_offsets_mm"]
 
 GRID_STEP_PX = 0.1
 _N_SHAPE = 257  # samples over the fillet or chamfer (normalised to r = 1)
@@ -277,16 +281,42 @@ def profiles(radius_mm, view: EdgeView, look: EdgeLook = EdgeLook(), half_width_
     w_px : (G,) grid across the edge (px, outwards positive, 0 = the design edge's image).
     raw : (N, 2, M, G) profile before blur; blurred : the same after the image chain.
     """
+    r = _radii(radius_mm, view)
+    if half_width_px is None:
+        half_width_px = _half_width_px(r, view, look)
+    m = int(np.ceil(half_width_px / GRID_STEP_PX))
+    w = GRID_STEP_PX * np.arange(-m, m + 1)
+    raw = _raw_profiles(r, view, look, w)
+    w = w.astype(np.float32)
+    blurred = _convolve_rows(raw, _kernel(look, w[1] - w[0]))
+    return w, raw, blurred
+
+
+def _radii(radius_mm, view: EdgeView) -> np.ndarray:
     n = view.a_s.shape[0]
     r = np.asarray(radius_mm, float)
     r = np.broadcast_to(r, (n, 2, r.shape[-1])) if r.ndim == 1 else r
     if np.any(r < 0) or not np.all(np.isfinite(r)):
         raise InputError("edge radius must be finite and >= 0")
-    if half_width_px is None:
-        reach = float(np.max(r) * np.max(np.abs(view.a_s) + np.abs(view.a_z)))
-        half_width_px = reach + 4.0 * np.hypot(look.blur_sigma_px, look.profile_sigma_px) + 4.0
-    m = int(np.ceil(half_width_px / GRID_STEP_PX))
-    w = GRID_STEP_PX * np.arange(-m, m + 1)
+    return r
+
+
+def _half_width_px(r: np.ndarray, view: EdgeView, look: EdgeLook) -> float:
+    """Half width of the profile grid: the broken edge's image plus the image chain's reach."""
+    reach = float(np.max(r) * np.max(np.abs(view.a_s) + np.abs(view.a_z)))
+    return reach + 4.0 * np.hypot(look.blur_sigma_px, look.profile_sigma_px) + 4.0
+
+
+def _raw_profiles(r: np.ndarray, view: EdgeView, look: EdgeLook, w: np.ndarray) -> np.ndarray:
+    """(N, 2, M, G) profiles before the image chain on the grid ``w`` (:func:`profiles`)."""
+    return _raw_from_section(_cross_section(view, look), view, r, w)
+
+
+def _cross_section(view: EdgeView, look: EdgeLook):
+    """The radius-free part of the profiles: ``F`` (N, 2, K) the shading over the broken
+    edge's image in units of ``r``, ``w_end`` (N, 2, 1) where it ends, the face's and the
+    beyond's greys (N, 2)."""
+    n = view.a_s.shape[0]
     a_s, a_z = view.a_s[..., None], view.a_z[..., None]
     face = _shade(np.zeros((n, 2)), -np.ones((n, 2)), look.face_albedo, 1.0, view, look)
     wall = _shade(-np.ones((n, 2)), np.zeros((n, 2)), look.wall_albedo, 0.0, view, look)
@@ -313,6 +343,13 @@ def profiles(radius_mm, view: EdgeView, look: EdgeLook = EdgeLook(), half_width_
         n_o = np.full(xs.shape, -np.sqrt(0.5))
         n_z = n_o
     F = _shade(n_o, n_z, look.face_albedo, 1.0, view, look)   # (N, 2, K)
+    return F, w_end, face, beyond
+
+
+def _raw_from_section(section, view: EdgeView, r: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """(N, 2, M, G) raw profiles of radii ``r`` (N, 2, M) from :func:`_cross_section`."""
+    F, w_end, face, beyond = section
+    a_s = view.a_s[..., None]
     w = w.astype(np.float32)
     x = w / np.maximum(r, 1e-9).astype(np.float32)[..., None]  # (N, 2, M, G)
     span = (a_s - w_end)[..., None].astype(np.float32)
@@ -327,9 +364,7 @@ def profiles(radius_mm, view: EdgeView, look: EdgeLook = EdgeLook(), half_width_
     v1 = flat[base + i0 + 1]
     raw = v0 + f * (v1 - v0)
     raw = np.where(x >= a_s[..., None], face[..., None, None], raw)
-    raw = np.where(x < w_end[..., None], beyond[..., None, None], raw)
-    blurred = _convolve_rows(raw, _kernel(look, w[1] - w[0]))
-    return w, raw, blurred
+    return np.where(x < w_end[..., None], beyond[..., None, None], raw)
 
 
 def gradient_edge_px(w_px: np.ndarray, blurred: np.ndarray, with_rival: bool = False,
@@ -424,6 +459,203 @@ def edge_offsets_mm(radius_mm, view: EdgeView, look: EdgeLook = EdgeLook(),
             "rival_delta_mm": w2 / a_s, "rival_ratio": ratio}
 
 
+def _raw_one_radius(r: float, view: EdgeView, look: EdgeLook, w: np.ndarray) -> np.ndarray:
+    """(N, 2, 1, G) raw profiles at one radius, the cross-section's shading evaluated at the
+    grid's own points (:func:`_raw_profiles` interpolates a table of it, which pays for many
+    radii, not for one; the two agree to ~1e-4 of the grey range)."""
+    a_s, a_z = view.a_s[..., None], view.a_z[..., None]
+    n = a_s.shape[0]
+    face = _shade(np.zeros((n, 2)), -np.ones((n, 2)), look.face_albedo, 1.0, view, look)
+    wall = _shade(-np.ones((n, 2)), np.zeros((n, 2)), look.wall_albedo, 0.0, view, look)
+    beyond = np.where(view.v_o < 0, wall, look.pocket_level)
+    x = (w / max(r, 1e-9))[None, None, :]
+    if look.shape == "round":
+        A, psi = np.hypot(a_s, a_z), np.arctan2(a_z, a_s)
+        phi_end = np.minimum(np.pi / 2, np.pi / 2 - psi)
+        w_end = a_s * (1 - np.sin(phi_end)) + a_z * (1 - np.cos(phi_end))
+        xs = np.clip(x, w_end, a_s)
+        with np.errstate(invalid="ignore"):
+            phi = np.arcsin(np.clip((a_s + a_z - xs) / A, -1, 1)) - psi
+        F = _shade(-np.sin(phi), -np.cos(phi), look.face_albedo, 1.0, view, look)
+    else:
+        if np.any(a_z >= a_s):
+            raise InputError("edge_model: the chamfer is seen edge-on")
+        w_end = a_z
+        k = -np.sqrt(0.5)
+        F = np.broadcast_to(_shade(np.full((n, 2), k), np.full((n, 2), k), look.face_albedo,
+                                   1.0, view, look)[..., None], (n, 2, len(w)))
+    raw = np.where(x >= a_s, face[..., None], F)
+    raw = np.where(x < w_end, beyond[..., None], raw)
+    return raw[:, :, None, :].astype(np.float32)
+
+
+def radius_offsets_mm(radii_mm, view: EdgeView, look: EdgeLook = EdgeLook()) -> np.ndarray:
+    """``delta_mm`` (N, 2, M) of :func:`edge_offsets_mm` for radii ``radii_mm`` (M,), each radius
+    on a grid only as wide as its own profile: the same profiles on the same grid points (up
+    to the float32 rounding of the FFT) at a fraction of the cost, since the common grid of
+    :func:`profiles` is as wide as the largest radius needs."""
+    radii = np.asarray(radii_mm, float)
+    out = np.empty(view.a_s.shape + (len(radii),))
+    # the kernel of the common grid: :func:`profiles` takes its step from the float32 grid's
+    # first two nodes, which differs from 0.1 px by the grid's rounding (~1e-5 px); the same
+    # step here keeps the edges identical to :func:`edge_offsets_mm` (their near-ties, two
+    # rises of equal height, otherwise flip on such differences)
+    m0 = int(np.ceil(_half_width_px(_radii(radii, view), view, look) / GRID_STEP_PX))
+    w0 = (GRID_STEP_PX * np.arange(-m0, -m0 + 2)).astype(np.float32)
+    kern = _kernel(look, w0[1] - w0[0])
+    section = _cross_section(view, look)           # F(x) does not depend on r: once
+    for j, r in enumerate(radii):
+        rr = _radii(np.array([r]), view)
+        m = int(np.ceil(_half_width_px(rr, view, look) / GRID_STEP_PX))
+        w = GRID_STEP_PX * np.arange(-m, m + 1)
+        w32 = w.astype(np.float32)
+        b = _convolve_rows(_raw_from_section(section, view, rr, w), kern)
+        out[..., j] = gradient_edge_px(w32, b, innermost=look.innermost)[..., 0] / view.a_s
+    return out
+
+
+def look_offsets_mm(radius_mm: float, view: EdgeView, looks, rival_look: int | None = None):
+    """``delta_mm`` (L, N, 2) of :func:`edge_offsets_mm` at one radius for several looks lit
+    alike (the same ``ring_radius_mm``: ``view`` is theirs), in one pass: the profiles on one
+    grid, one convolution per distinct kernel, one edge search (the budget's looks).
+
+    Returns ``(delta, rival)``: ``rival`` None, or for ``looks[rival_look]`` the pair
+    ``(rival_delta_mm, rival_ratio)`` (N, 2) as :func:`edge_offsets_mm`.
+    """
+    looks = tuple(looks)
+    r = _radii(np.array([float(radius_mm)]), view)
+    m = int(np.ceil(max(_half_width_px(r, view, lk) for lk in looks) / GRID_STEP_PX))
+    w = GRID_STEP_PX * np.arange(-m, m + 1)
+    w32 = w.astype(np.float32)
+    blurred = [None] * len(looks)
+    groups: dict = {}
+    for i, lk in enumerate(looks):
+        groups.setdefault((lk.blur_sigma_px, lk.profile_sigma_px), []).append(i)
+    for idx in groups.values():                     # one FFT per kernel over its looks
+        raw = np.stack([_raw_one_radius(float(radius_mm), view, looks[i], w) for i in idx])
+        # the kernel's step as :func:`profiles` makes it for this look (radius_offsets_mm)
+        m0 = int(np.ceil(_half_width_px(r, view, looks[idx[0]]) / GRID_STEP_PX))
+        w0 = (GRID_STEP_PX * np.arange(-m0, -m0 + 2)).astype(np.float32)
+        b = _convolve_rows(raw, _kernel(looks[idx[0]], w0[1] - w0[0]))
+        for k, i in enumerate(idx):
+            blurred[i] = b[k]
+    blurred = np.stack(blurred)                     # (L, N, 2, 1, G)
+    a_s = view.a_s[None, ..., None]
+    inner = np.array([lk.innermost for lk in looks])
+    wp = np.empty(blurred.shape[:-1])
+    for f in np.unique(inner):                      # the rise each look's refinement takes
+        wp[inner == f] = gradient_edge_px(w32, blurred[inner == f], innermost=float(f))
+    rival = None
+    if rival_look is not None:
+        _, w2, ratio = gradient_edge_px(w32, blurred[rival_look], with_rival=True,
+                                        innermost=looks[rival_look].innermost)
+        rival = ((w2 / view.a_s[..., None])[..., 0], ratio[..., 0])
+    return (wp / a_s)[..., 0], rival
+
+
+#: the offset grid shipped with the package (:func:`build_offset_grid`, written by
+#: ``benchmarks/dmr_speed.py --write-grid``)
+OFFSET_GRID_FILE = "edge_offset_grid.npz"
+#: the grid's nodes: view angle in the cross-section (deg), in-plane length of the view vector,
+#: scaled radius ``rho = r a_s`` (px)
+GRID_THETA_DEG = np.arange(-40.0, 20.01, 0.5)
+GRID_M = np.linspace(0.8, 1.0, 11)
+GRID_RHO_PX = np.r_[np.arange(0.0, 8.0, 0.25), np.arange(8.0, 40.01, 0.5)]
+
+
+def _view_coordinates(view: EdgeView):
+    """``(theta, m)`` of each edge end: the view vector's direction in the cross-section plane,
+    ``(v_o, v_z) = m (sin theta, -cos theta)``, and its length there."""
+    return np.arctan2(view.v_o, -view.v_z), np.hypot(view.v_o, view.v_z)
+
+
+def build_offset_grid(look: EdgeLook = EdgeLook(), theta_deg=GRID_THETA_DEG, m=GRID_M,
+                      rho_px=GRID_RHO_PX) -> np.ndarray:
+    """``w*`` (px) of :func:`edge_offsets_mm` over a grid of views and scaled radii, for a look
+    lit from the camera centre (``ring_radius_mm = 0``).
+
+    Why three numbers suffice: with the light at the camera (``l = v``, ``|l + v| = 2``) the
+    shading of the cross-section depends on ``(v_o, v_z)`` only; the image of the viewing ray is
+    a point, so ``a_s v_o + a_z v_z = 0`` (``n_img . J v = 0``) and ``a_z / a_s = tan theta``;
+    and the profile across the edge in pixels depends on ``r`` only through ``rho = r a_s`` (the
+    image chain's kernels are in pixels). An end of view ``(a_s, theta, m)`` and radius ``r``
+    has the same profile as a synthetic end of ``a_s = 1`` and radius ``rho``.
+
+    Returns
+    -------
+    (T, M, P) array over ``theta_deg x m x rho_px`` (float32; NaN where no edge).
+    """
+    if look.ring_radius_mm > 0:
+        raise InputError("build_offset_grid: only a light at the camera centre is tabulated")
+    T, Mg = np.meshgrid(np.radians(theta_deg), np.asarray(m, float), indexing="ij")
+    T, Mg = T.ravel(), Mg.ravel()
+    if len(T) % 2:
+        T, Mg = np.r_[T, T[-1]], np.r_[Mg, Mg[-1]]          # pairs of ends (N, 2)
+    sh = (len(T) // 2, 2)
+    v_o, v_z = (Mg * np.sin(T)).reshape(sh), (-Mg * np.cos(T)).reshape(sh)
+    view = EdgeView(np.ones(sh), np.tan(T).reshape(sh), v_o, v_z, v_o[..., None],
+                    v_z[..., None], np.full(sh + (1,), 2.0), np.zeros(sh + (2,)))
+    out = np.empty((len(T), len(rho_px)), np.float32)
+    for j, rho in enumerate(rho_px):  # one radius per call: the profile grid follows it
+        out[:, j] = edge_offsets_mm(np.array([rho]), view, look,
+                                    with_rival=False)["w_px"].reshape(-1)
+    n = len(theta_deg) * len(m)
+    return out[:n].reshape(len(theta_deg), len(m), len(rho_px))
+
+
+def _look_key(look: EdgeLook) -> str:
+    return repr(sorted(asdict(look).items()))
+
+
+@cache
+def _shipped_grids() -> dict:
+    """look key -> (T, M, P) grid, from the package's :data:`OFFSET_GRID_FILE` (empty when
+    missing or made for other nodes: the exact model is then used)."""
+    try:
+        with resources.files("cutterpose.data").joinpath(OFFSET_GRID_FILE).open("rb") as f:
+            z = np.load(f, allow_pickle=False)
+            if not (np.array_equal(z["theta_deg"], GRID_THETA_DEG)
+                    and np.array_equal(z["m"], GRID_M)
+                    and np.array_equal(z["rho_px"], GRID_RHO_PX)):
+                return {}
+            return {str(k): z[f"grid_{i}"] for i, k in enumerate(z["keys"])}
+    except (FileNotFoundError, KeyError, OSError, ValueError):
+        return {}
+
+
+def tabulated_w_px(radius_mm, view: EdgeView, look: EdgeLook = EdgeLook()):
+    """``w*`` (px, (N, 2, M)) of :func:`edge_offsets_mm` for radii ``radius_mm`` (M,) by
+    trilinear interpolation in the shipped grid (:func:`build_offset_grid`), or None when the
+    look is not tabulated or a view or radius lies outside the grid (then use the exact model).
+    The interpolation differs from the exact model by ~0.001 mm median, ~0.01 mm p95 in
+    ``delta``; more only where two rises of the profile swap (where ``delta(r)`` jumps)."""
+    grid = _shipped_grids().get(_look_key(look))
+    if grid is None:
+        return None
+    theta, m = _view_coordinates(view)
+    th_deg = np.degrees(theta)
+    rho = view.a_s[..., None] * np.asarray(radius_mm, float)
+    if (th_deg.min() < GRID_THETA_DEG[0] or th_deg.max() > GRID_THETA_DEG[-1]
+            or m.min() < GRID_M[0] or m.max() > GRID_M[-1]
+            or rho.min() < GRID_RHO_PX[0] or rho.max() > GRID_RHO_PX[-1]):
+        return None
+    th_b, m_b, rho = np.broadcast_arrays(th_deg[..., None], m[..., None], rho)
+
+    def cell(nodes, x):  # uniform nodes of theta and m; rho in two uniform runs
+        i = np.clip(np.searchsorted(nodes, x, side="right") - 1, 0, len(nodes) - 2)
+        return i, (x - nodes[i]) / (nodes[i + 1] - nodes[i])
+
+    i, fi = cell(GRID_THETA_DEG, th_b)
+    j, fj = cell(GRID_M, m_b)
+    k, fk = cell(GRID_RHO_PX, rho)
+    out = 0.0
+    for di, wi in ((0, 1 - fi), (1, fi)):
+        for dj, wj in ((0, 1 - fj), (1, fj)):
+            for dk, wk in ((0, 1 - fk), (1, fk)):
+                out = out + (wi * wj * wk) * grid[i + di, j + dj, k + dk]
+    return out
+
+
 class OffsetTable:
     """``delta(r)`` of every edge end tabulated over radii for one pose (module doc):
     cheap evaluation and derivative inside a solver's iterations.
@@ -433,14 +665,21 @@ class OffsetTable:
     R_cam_holder, t_cam_holder_mm, K, holder : the view (the pose need only be close: the
         offsets change with the viewing direction, not with millimetres of pose).
     look : photometry; radii : the table's radii (mm, increasing from 0).
+    tabulated : use the shipped offset grid (:func:`tabulated_w_px`) where it covers the view.
     """
 
     def __init__(self, R_cam_holder, t_cam_holder_mm, K, holder: Holder,
-                 look: EdgeLook = EdgeLook(), radii=TABLE_RADII_MM):
+                 look: EdgeLook = EdgeLook(), radii=TABLE_RADII_MM, tabulated: bool = False):
         self.look = look
         self.radii = np.asarray(radii, float)
         self.view = edge_views(R_cam_holder, t_cam_holder_mm, K, holder, look)
-        self.delta = edge_offsets_mm(self.radii, self.view, look, with_rival=False)["delta_mm"]
+        # the shipped grid (if asked for and the view is inside it, ~1 ms), else the exact model
+        w = tabulated_w_px(self.radii, self.view, look) if tabulated else None
+        self.tabulated = w is not None
+        if w is not None:
+            self.delta = w / self.view.a_s[..., None]
+        else:
+            self.delta = radius_offsets_mm(self.radii, self.view, look)
         # an edge end whose edge is lost (NaN) keeps the uniform-offset value of its neighbours
         bad = ~np.isfinite(self.delta)
         if bad.any():
@@ -449,13 +688,32 @@ class OffsetTable:
         # C1 cubic (PCHIP): the solver's Jacobian and the Fisher information need a continuous
         # slope; piecewise-linear would jump at every node
         self._interp = PchipInterpolator(self.radii, self.delta, axis=-1, extrapolate=False)
-        self._slope = self._interp.derivative()
+        # the cubic's coefficients per interval, (4, K - 1, N, 2): evaluated by hand below
+        # (scipy's PPoly call costs ~40 us per call, and the solver calls it hundreds of times)
+        self._coef = self._interp.c
+
+    def _eval(self, x: np.ndarray):
+        """Values and slopes (N, 2, M) at radii ``x`` (M,) inside the table's range."""
+        i = np.clip(np.searchsorted(self.radii, x, side="right") - 1, 0, len(self.radii) - 2)
+        dx = x - self.radii[i]
+        c = self._coef[:, i]                                        # (4, M, N, 2)
+        dx = dx[:, None, None]
+        val = ((c[0] * dx + c[1]) * dx + c[2]) * dx + c[3]
+        der = (3 * c[0] * dx + 2 * c[1]) * dx + c[2]
+        return np.moveaxis(val, 0, -1), np.moveaxis(der, 0, -1)
 
     def __call__(self, radius_mm: float) -> tuple[np.ndarray, np.ndarray]:
         """``delta`` (N, 2) and ``d delta / d r`` (N, 2) at one radius (clamped to the table's
         range, where the slope is taken at the end)."""
         x = float(np.clip(radius_mm, self.radii[0], self.radii[-1]))
-        return self._interp(x), self._slope(x)
+        val, der = self._eval(np.array([x]))
+        return val[..., 0], der[..., 0]
+
+    def many(self, radii_mm) -> tuple[np.ndarray, np.ndarray]:
+        """``delta`` and its slope (M, N, 2) at several radii (clamped as :meth:`__call__`)."""
+        x = np.clip(np.asarray(radii_mm, float), self.radii[0], self.radii[-1])
+        val, der = self._eval(x)
+        return np.moveaxis(val, -1, 0), np.moveaxis(der, -1, 0)
 
 
 def model_corners_mm(holder: Holder, delta_mm: np.ndarray, outward: np.ndarray) -> np.ndarray:

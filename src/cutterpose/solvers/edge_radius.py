@@ -54,8 +54,8 @@ from ..image.edge_model import (
     EdgeLook,
     OffsetTable,
     corner_offset_jacobian,
-    edge_offsets_mm,
     edge_views,
+    look_offsets_mm,
     model_corners_mm,
 )
 from .estimate import PoseEstimate
@@ -66,6 +66,15 @@ __all__ = ["RadiusPrior", "RadiusFit", "fit_pose_radius", "refine_radius", "solv
 
 #: another edge shape replaces the fillet only when its scan cost is below this fraction
 SHAPE_MARGIN = 0.7
+#: a shape screened on the offset grid is scanned again on exact offsets unless its scan cost
+#: exceeds the first shape's by this many units of the budget's profile weight (twice the
+#: e^-25 of the weight itself: the grid's cost is within a few percent, and such a shape
+#: neither wins nor weighs in the budget)
+SCREEN_EXPONENT = 50.0
+#: fit on the shipped offset grid (``OffsetTable(tabulated=True)``) rather than on the exact
+#: offsets: faster, but the grid blurs the jumps of delta(r) and the fit moves by up to a few
+#: tenths of a millimetre on images where r and Z are confounded (edge_model.md, "Cost")
+TABULATED_TABLES = False
 #: the radii (mm) the fit starts from (the best one) and the budget's radius profile
 SCAN_RADII_MM = (0.0, 0.5, 1.0, 1.5, 2.0, 3.0, 4.0, 5.0, 6.0)
 
@@ -132,17 +141,33 @@ def _rotation_and_derivatives(dof):
     return Rz @ Ry @ Rx, np.stack([Rz @ Ry @ dRx, Rz @ dRy @ Rx, dRz @ Ry @ Rx]) * k
 
 
+def _project(R, dof, delta, table: OffsetTable, holder: Holder, K):
+    """Model corners (N, 3), camera-frame points and ideal pixels (N, 2) for offsets ``delta``."""
+    P = model_corners_mm(holder, delta, table.view.outward)
+    X = P @ R.T + dof[3:]
+    return P, X, (X @ K.T)[:, :2] / X[:, 2:3]
+
+
+def _pixels(dof, r, table: OffsetTable, holder: Holder, K):
+    """The model pixels of :func:`_model` without the Jacobian (the minimiser's residual calls,
+    most of them at trial points whose Jacobian is never asked for)."""
+    a, b, g = np.radians(dof[:3])
+    ca, sa, cb, sb, cg, sg = np.cos(a), np.sin(a), np.cos(b), np.sin(b), np.cos(g), np.sin(g)
+    R = (np.array([[cg, -sg, 0], [sg, cg, 0], [0, 0, 1]])
+         @ np.array([[cb, 0, sb], [0, 1, 0], [-sb, 0, cb]])
+         @ np.array([[1, 0, 0], [0, ca, -sa], [0, sa, ca]]))
+    return _project(R, dof, table(r)[0], table, holder, K)[2]
+
+
 def _model(dof, r, table: OffsetTable, holder: Holder, K):
     """Model pixels (N, 2), their Jacobian (2N, 7) w.r.t. (DOFs, r) and the model corners
     (N, 3). (The pose part is :func:`cutterpose.geometry.pose.pixel_jacobian` for one pose,
     written out: this is the solver's inner loop.)"""
     R, dR = _rotation_and_derivatives(dof)
     delta, slope = table(r)
-    P = model_corners_mm(holder, delta, table.view.outward)
-    X = P @ R.T + dof[3:]
+    P, X, uv = _project(R, dof, delta, table, holder, K)
     Z = X[:, 2]
     fx, sk, fy = K[0, 0], K[0, 1], K[1, 1]
-    uv = (X @ K.T)[:, :2] / Z[:, None]
     Jt = np.zeros((len(P), 2, 3))                                         # d px / d X_cam
     Jt[:, 0, 0], Jt[:, 0, 1] = fx / Z, sk / Z
     Jt[:, 0, 2] = -(fx * X[:, 0] + sk * X[:, 1]) / Z ** 2
@@ -169,18 +194,18 @@ def model_offset_spread(table: OffsetTable, radius_mm: float, camera: Camera, ho
     """
     R = rotation_from_euler_deg(*dof[:3])
     d0 = table(radius_mm)[0]
-    out = []
-    for look in looks:
-        if look == table.look:
-            continue
-        v = edge_views(R, dof[3:], camera.K, holder, look)
-        d = edge_offsets_mm(np.array([radius_mm]), v, look)["delta_mm"][..., 0]
-        out.append(np.where(np.isfinite(d), d - d0, 0.0))
-    deltas = np.array(out) if out else np.zeros((0,) + d0.shape)
-    v = table.view
-    o = edge_offsets_mm(np.array([radius_mm]), v, table.look)
-    ratio = o["rival_ratio"][..., 0]
-    gap = np.abs(o["rival_delta_mm"][..., 0] - o["delta_mm"][..., 0])
+    others = [look for look in looks if look != table.look]
+    deltas = np.zeros((len(others),) + d0.shape)
+    # the looks lit alike share one view and one batched profile computation
+    by_light: dict = {}
+    for i, look in enumerate(others):
+        by_light.setdefault(look.ring_radius_mm, []).append(i)
+    for idx in by_light.values():
+        v = edge_views(R, dof[3:], camera.K, holder, others[idx[0]])
+        d = look_offsets_mm(radius_mm, v, [others[i] for i in idx])[0]
+        deltas[idx] = np.where(np.isfinite(d), d - d0, 0.0)
+    d_nom, (rival_delta, ratio) = look_offsets_mm(radius_mm, table.view, (table.look,), 0)
+    gap = np.abs(rival_delta - d_nom[0])
     rival = np.where((ratio >= 0.6) & np.isfinite(gap), 0.5 * gap, 0.0)
     sig = np.sqrt(np.mean(deltas ** 2, axis=0) + rival ** 2) if len(deltas) else rival
     return deltas, sig
@@ -200,29 +225,64 @@ def _whitening(sigma_px: float, sig_end_mm: np.ndarray, table: OffsetTable, Jt6:
     return np.linalg.inv(L)
 
 
+def _rotations_many(D):
+    """(M, 3, 3) rotations and (M, 3, 3, 3) derivatives of :func:`_rotation_and_derivatives`
+    for M poses at once."""
+    a, b, g = np.radians(D[:, 0]), np.radians(D[:, 1]), np.radians(D[:, 2])
+    ca, sa, cb, sb, cg, sg = np.cos(a), np.sin(a), np.cos(b), np.sin(b), np.cos(g), np.sin(g)
+    z, o = np.zeros_like(a), np.ones_like(a)
+
+    def m(*rows):
+        return np.stack([np.stack(r, -1) for r in rows], -2)
+
+    Rx, dRx = m((o, z, z), (z, ca, -sa), (z, sa, ca)), m((z, z, z), (z, -sa, -ca), (z, ca, -sa))
+    Ry, dRy = m((cb, z, sb), (z, o, z), (-sb, z, cb)), m((-sb, z, cb), (z, z, z), (-cb, z, -sb))
+    Rz, dRz = m((cg, -sg, z), (sg, cg, z), (z, z, o)), m((-sg, -cg, z), (cg, -sg, z), (z, z, z))
+    k = np.pi / 180.0
+    return Rz @ Ry @ Rx, np.stack([Rz @ Ry @ dRx, Rz @ dRy @ Rx, dRz @ Ry @ Rx], 1) * k
+
+
+def _model_many(D, radii, table: OffsetTable, holder: Holder, K):
+    """:func:`_model` for M poses ``D`` (M, 6) and radii (M,) at once: model pixels (M, N, 2)
+    and the pose part of the Jacobian (M, 2N, 6) (the radius scan's Gauss-Newton steps)."""
+    R, dR = _rotations_many(D)
+    delta = table.many(radii)[0]                                          # (M, N, 2)
+    xy = holder.corners_mm + np.einsum("mnk,nkj->mnj", delta, table.view.outward)
+    P = np.concatenate([xy, np.zeros(xy.shape[:2] + (1,))], axis=2)       # (M, N, 3)
+    X = np.einsum("mij,mnj->mni", R, P) + D[:, None, 3:]
+    Z = X[..., 2]
+    fx, sk, fy = K[0, 0], K[0, 1], K[1, 1]
+    uv = np.einsum("mnj,ij->mni", X, K)[..., :2] / Z[..., None]
+    Jt = np.zeros(X.shape[:2] + (2, 3))
+    Jt[..., 0, 0], Jt[..., 0, 1] = fx / Z, sk / Z
+    Jt[..., 0, 2] = -(fx * X[..., 0] + sk * X[..., 1]) / Z ** 2
+    Jt[..., 1, 1], Jt[..., 1, 2] = fy / Z, -fy * X[..., 1] / Z ** 2
+    dX_ang = np.einsum("mkij,mnj->mnik", dR, P)                            # (M, N, 3, 3)
+    J = np.concatenate([np.einsum("mnij,mnjk->mnik", Jt, dX_ang), Jt], axis=3)
+    return uv, J.reshape(len(D), -1, 6)
+
+
 def _scan_radius(dof, q, table, holder, K, prior: RadiusPrior, r_grid):
     """Profile of the fit over the radius: for each ``r`` of the grid, the pose after three
     Gauss-Newton steps from ``dof`` and its robust cost (plus the prior). Returns the best
     radius, its pose and the profile ``(r, cost, dof)`` rows (the offsets are not monotone in
     r, so a local fit from one start can stop in the wrong valley, and the budget needs to know
-    whether another valley fits nearly as well)."""
-    rows = []
-    s2 = None
+    whether another valley fits nearly as well). All radii are stepped together."""
     seen = np.isfinite(q).all(axis=1)
     rows2 = np.repeat(seen, 2)
-    for r in r_grid:
-        if not prior.min_mm <= r <= prior.max_mm:
-            continue
-        d = np.array(dof, float)
-        for _ in range(3):
-            uv, J, _ = _model(d, r, table, holder, K)
-            d = d - np.linalg.lstsq(J[rows2, :6], (uv - q)[seen].ravel(), rcond=None)[0]
-        e = np.linalg.norm(_model(d, r, table, holder, K)[0][seen] - q[seen], axis=1)
-        if s2 is None:
-            s2 = max(0.05, float(np.median(e))) ** 2
-        cost = float(np.sum(np.minimum(e ** 2, 4 * s2))) + s2 * (
-            (r - prior.mean_mm) / prior.std_mm) ** 2
-        rows.append((float(r), cost, d))
+    rs = np.array([r for r in r_grid if prior.min_mm <= r <= prior.max_mm], float)
+    D = np.repeat(np.asarray(dof, float)[None], len(rs), axis=0)
+    for _ in range(3):
+        uv, J = _model_many(D, rs, table, holder, K)
+        e = (uv - q)[:, seen].reshape(len(rs), -1)
+        D = D - np.stack([np.linalg.lstsq(J[m][rows2], e[m], rcond=None)[0]
+                          for m in range(len(rs))])
+    uv = _model_many(D, rs, table, holder, K)[0]
+    e = np.linalg.norm(uv[:, seen] - q[seen], axis=2)                      # (M, n_seen)
+    s2 = max(0.05, float(np.median(e[0]))) ** 2
+    cost = np.sum(np.minimum(e ** 2, 4 * s2), axis=1) + s2 * (
+        (rs - prior.mean_mm) / prior.std_mm) ** 2
+    rows = [(float(r), float(c), d) for r, c, d in zip(rs, cost, D)]
     best = min(rows, key=lambda row: row[1])
     return best[0], best[2], rows
 
@@ -237,7 +297,7 @@ def fit_pose_radius(dof0, ideal_px: np.ndarray, camera: Camera, holder: Holder,
                     look: EdgeLook = EdgeLook(), prior: RadiusPrior = RadiusPrior(),
                     max_iter: int = 30, huber_k: float = 2.5,
                     r_grid=None,
-                    table: OffsetTable | None = None) -> RadiusFit:
+                    table: OffsetTable | None = None, scan=None) -> RadiusFit:
     """Levenberg-Marquardt on (DOFs, r) from ``dof0`` with the corners ``ideal_px`` given in
     model order (module doc).
 
@@ -245,7 +305,8 @@ def fit_pose_radius(dof0, ideal_px: np.ndarray, camera: Camera, holder: Holder,
     the millimetres the fit moves); a scan over ``r_grid`` picks the start; the first pass
     whitens the corners by the noise ``s`` alone (the robust scale of the start's residuals),
     the second by the noise plus the edge model's rival rises at the radius found (``table``:
-    a table made before for a view close to ``dof0``, e.g. for repeated fits). The
+    a table made before for a view close to ``dof0``, e.g. for repeated fits; ``scan``: the
+    result of :func:`_scan_radius` with that table, when already made). The
     minimiser is SciPy's trust-region reflective ``least_squares`` with Huber's loss on each
     whitened coordinate and the bounds of the prior on ``r``.
     """
@@ -256,8 +317,10 @@ def fit_pose_radius(dof0, ideal_px: np.ndarray, camera: Camera, holder: Holder,
     R0 = rotation_from_euler_deg(*np.asarray(dof0, float)[:3])
     if table is None:
         table = OffsetTable(R0, np.asarray(dof0, float)[3:], K, holder, look)
-    r, dof, profile = _scan_radius(np.asarray(dof0, float), q, table, holder, K, prior,
-                                   SCAN_RADII_MM if r_grid is None else r_grid)
+    if scan is None:
+        scan = _scan_radius(np.asarray(dof0, float), q, table, holder, K, prior,
+                            SCAN_RADII_MM if r_grid is None else r_grid)
+    r, dof, profile = scan
     uv, J, _ = _model(dof, r, table, holder, K)
     # a corner not seen: a finite placeholder with zero whitening, so it adds nothing
     q = np.where(seen[:, None], q, uv)
@@ -275,7 +338,7 @@ def fit_pose_radius(dof0, ideal_px: np.ndarray, camera: Camera, holder: Holder,
         W = _whitening(s, sig_end, table, J[:, 3:6], R0) * seen[:, None, None]
 
         def fun(x_, W=W):
-            uv_ = _model(x_[:6], x_[6], table, holder, K)[0]
+            uv_ = _pixels(x_[:6], x_[6], table, holder, K)
             z_ = np.einsum("nij,nj->ni", W, uv_ - q).ravel()
             return np.r_[z_, (x_[6] - prior.mean_mm) * inv_sr]
 
@@ -317,13 +380,18 @@ def _assigned(est: PoseEstimate, ideal_px: np.ndarray, camera: Camera, holder: H
 def refine_radius(est: PoseEstimate, ideal_px: np.ndarray, camera: Camera, holder: Holder,
                   look: EdgeLook = EdgeLook(), prior: RadiusPrior = RadiusPrior(),
                   name: str = "dm+r", shapes=("round", "chamfer"),
-                  ordered: bool = False) -> PoseEstimate:
+                  ordered: bool = False, tabulated: bool | None = None) -> PoseEstimate:
     """The refinement step after a solver: ``est`` -> the design-edge pose and the radius
     (``info["edge_radius_mm"]``, ``info["radius_fit"]`` the :class:`RadiusFit`), fitted for
     each edge ``shapes`` and the better kept (``info["edge_shape"]``).
 
     ``ordered``: ``ideal_px`` is already in model order (the field chain), NaN rows for the
-    corners not seen, which the fit leaves out; else the solver's assignment orders them."""
+    corners not seen, which the fit leaves out; else the solver's assignment orders them.
+    ``info["shape_costs"]``: each shape's best scan cost (a shape screened on the offset grid
+    and not rescanned: its grid cost).
+    ``tabulated``: fit on the shipped offset grid instead of the exact offsets (default
+    :data:`TABULATED_TABLES`; ~12 ms faster, but not the same fit: docs/notes/edge_model.md,
+    "Cost")."""
     if not est:
         return PoseEstimate.failure(name, est.reason, info=est.info)
     t0 = time.perf_counter()
@@ -340,25 +408,45 @@ def refine_radius(est: PoseEstimate, ideal_px: np.ndarray, camera: Camera, holde
     # scan fits the corners better (the scan's trimmed cost, one noise scale for both); the
     # full fit only for that one
     R0 = rotation_from_euler_deg(*dof0[:3])
-    tables = [OffsetTable(R0, dof0[3:], camera.K, holder, replace(look, shape=sh))
-              for sh in shapes]
-    scans = [_scan_radius(dof0, q, t, holder, camera.K, prior, SCAN_RADII_MM)[2]
-             for t in tables]
-    cost = [min(c for _, c, _ in rows) for rows in scans]
+
+    def scanned(shape, tabulated):
+        t = OffsetTable(R0, dof0[3:], camera.K, holder, replace(look, shape=shape),
+                        tabulated=tabulated)
+        sc = _scan_radius(dof0, q, t, holder, camera.K, prior, SCAN_RADII_MM)
+        return t, sc, min(c for _, c, _ in sc[2])
+
+    fast = TABULATED_TABLES if tabulated is None else tabulated
+    t, sc, c = scanned(shapes[0], fast)
+    tables, scans, cost = [t], [sc], [c]
+    # a screened shape is kept from the grid only when its rows weigh nothing in the budget's
+    # radius profile (radius_profile_cov: exp(-(cost - min) (2 n - 7) / (2 min)) < e^-25)
+    n_seen = int(np.isfinite(q).all(axis=1).sum())
+    screen_cost = cost[0] * (1.0 + SCREEN_EXPONENT / max(2 * n_seen - 7, 1))
+    for sh in shapes[1:]:
+        # the other shapes are screened on the shipped offset grid (~1 ms instead of ~10 ms;
+        # its offsets are within ~0.01 mm, its scan cost within a few percent); one that could
+        # win or weigh in the budget's radius profile is scanned again on exact offsets
+        t, sc, c = scanned(sh, True)
+        if t.tabulated and not fast and c <= screen_cost:
+            t, sc, c = scanned(sh, False)
+        tables.append(t)
+        scans.append(sc)
+        cost.append(c)
     # the first shape (the fillet, the common break) unless another fits clearly better: a
     # chamfer images at its foot, a depth offset the contour cannot tell from Z, so a chamfer
     # chosen on a tie would throw away the depth of a sharp or filleted edge
     k = int(np.argmin(cost))
     if cost[k] > SHAPE_MARGIN * cost[0]:
         k = 0
-    fit = fit_pose_radius(dof0, q, camera, holder, tables[k].look, prior, table=tables[k])
+    fit = fit_pose_radius(dof0, q, camera, holder, tables[k].look, prior, table=tables[k],
+                          scan=scans[k])
     if not np.all(np.isfinite(fit.dof)):
         return PoseEstimate.failure(name, "the radius fit diverged", info=est.info)
     # the other shapes' scans join the profile the budget weighs: a chamfer images at its foot,
     # a pure depth offset, so every chamfer size fits about equally well with another Z; when
     # the corners cannot tell the shapes apart, that depth range is part of the uncertainty
-    fit.profile = list(fit.profile) + [row for i, rows in enumerate(scans) if i != k
-                                       for row in rows]
+    fit.profile = list(fit.profile) + [row for i, sc in enumerate(scans) if i != k
+                                       for row in sc[2]]
     info = dict(est.info, edge_radius_mm=fit.radius_mm, radius_fit=fit,
                 edge_shape=fit.table.look.shape, shape_costs=dict(zip(shapes, cost)),
                 radius_iterations=fit.iterations, start_dof=dof0.tolist())
