@@ -151,3 +151,33 @@ def test_measure_in_the_base_frame_end_to_end(tmp_path, cam_quarter):
                                    str(tmp_path / "cam.json"), "--handeye",
                                    str(tmp_path / "he.json")])
     assert res.exit_code == 2 and "--flange-pose" in res.output
+
+
+def test_render_set_from_robot_stations(tmp_path, cam_quarter):
+    """render-set --flange-poses: one image per station of a holder at a known base pose,
+    truth.json holding T_cam_holder = T_flange_cam^-1 T_base_flange^-1 T_base_holder."""
+    cell = RobotCell(cam_quarter)
+    T_bh = Pose(np.column_stack([[0, 1.0, 0], [0, 0, 1.0], [1.0, 0, 0]]), [1500, 100, 800],
+                "base", "holder")
+    stations = cell.holder_stations(T_bh, 3, seed=2)
+    he = HandEye(cell.T_flange_cam, cell.T_base_plate, np.diag([0.02 ** 2] * 3 + [4e-5 ** 2] * 3))
+    save_camera(cam_quarter, tmp_path / "cam.json")
+    save_handeye(he, tmp_path / "he.json")
+    write_poses(tmp_path / "stations.csv", stations)
+    write_poses(tmp_path / "holder.csv", [T_bh])
+    out = tmp_path / "set"
+    res = CliRunner().invoke(app, ["render-set", "--out", str(out), "--camera",
+                                   str(tmp_path / "cam.json"), "--preset", "easy",
+                                   "--flange-poses", str(tmp_path / "stations.csv"),
+                                   "--handeye", str(tmp_path / "he.json"),
+                                   "--holder-base-pose", str(tmp_path / "holder.csv")])
+    assert res.exit_code == 0, res.output
+    truth = json.loads((out / "truth.json").read_text())
+    assert len(truth["images"]) == 3
+    for e, A in zip(truth["images"], stations):
+        want = cell.T_flange_cam.inverse() @ A.inverse() @ T_bh
+        np.testing.assert_allclose(e["t_cam_holder_mm"], want.t_mm, atol=1e-6)
+        assert (out / e["file"]).is_file()
+    res = CliRunner().invoke(app, ["render-set", "--out", str(out), "--flange-poses",
+                                   str(tmp_path / "stations.csv")])
+    assert res.exit_code == 2 and "--handeye" in res.output

@@ -222,9 +222,36 @@ def render_set_cmd(
     variant: str = typer.Option(None, help="pbr: Mitsuba variant."),
     resume: bool = typer.Option(False, "--resume", help="pbr: keep the images of an "
                                 "interrupted run of the same set and render the rest."),
+    flange_poses: str = typer.Option(None, "--flange-poses", help="Robot cell: a pose file of "
+                                     "T_base_flange, one image per row (replaces --count); "
+                                     "needs --handeye and --holder-base-pose."),
+    handeye: str = typer.Option(None, "--handeye", help="Robot cell: handeye.json with the "
+                                "true T_flange_cam."),
+    holder_base_pose: str = typer.Option(None, "--holder-base-pose", help="Robot cell: the "
+                                         "holder in the base frame, x_mm,y_mm,z_mm,qx,qy,qz,qw "
+                                         "or a one-row pose file."),
 ):
     """Render an image set with its truth.json (PROTOCOL.md, exchange formats)."""
     from rich.progress import Progress
+
+    from .errors import InputError
+
+    poses = None
+    cell = (flange_poses, handeye, holder_base_pose)
+    if any(v is not None for v in cell):
+        from .calibration.handeye import load_handeye
+        from .robot.poses import load_flange_pose, read_poses
+
+        if any(v is None for v in cell) or engine != "analytic":
+            raise InputError("a robot-cell set needs --flange-poses, --handeye and "
+                             "--holder-base-pose together (analytic engine)")
+        X = load_handeye(handeye).T_flange_cam
+        hp = holder_base_pose
+        T_bh = (parse_row_or_file(hp, read_poses, "holder") if hp.lower().endswith(
+            (".csv", ".json")) else load_flange_pose(hp).with_frames("base", "holder"))
+        poses = [(X.inverse() @ T_bf.inverse() @ T_bh).with_frames("cam", "holder")
+                 for T_bf in read_poses(flange_poses)]
+        count = len(poses)
 
     if engine == "pbr":
         from .render.pbr import field_preset, render_field_set
@@ -243,8 +270,6 @@ def render_set_cmd(
         typer.echo(f"wrote {count} images and {path}")
         return
     if engine != "analytic":
-        from .errors import InputError
-
         raise InputError(f"--engine must be 'analytic' or 'pbr', got {engine!r}")
     from .render.analytic import DEFAULT_MIX, render_set
     from .render.analytic import preset as get_preset
@@ -257,7 +282,8 @@ def render_set_cmd(
     with Progress(transient=True, console=None) as bar:
         task = bar.add_task("rendering", total=count)
         path = render_set(count, seed, out, cam, mix=mix, workers=workers, scheduler=scheduler,
-                          progress=lambda done, n: bar.update(task, completed=done))
+                          progress=lambda done, n: bar.update(task, completed=done),
+                          poses=poses)
     typer.echo(f"wrote {count} images and {path}")
 
 

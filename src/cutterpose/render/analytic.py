@@ -911,10 +911,12 @@ def random_pose(rng: np.random.Generator, max_angle_deg: float = 10.0,
 def _set_item(args) -> tuple[dict, bytes]:
     """Render image ``i`` of a set; returns its ``truth.json`` entry and the PNG file's bytes
     (the caller writes it, so workers on other machines need no access to ``out_dir``)."""
-    i, seed, camera, holder, names, p, max_angle_deg, max_shift_mm = args
+    i, seed, camera, holder, names, p, max_angle_deg, max_shift_mm, given = args
     img_seed = int(np.random.SeedSequence([seed, i]).generate_state(1)[0])
     rng = np.random.default_rng(img_seed)
     pose = random_pose(rng, max_angle_deg, max_shift_mm)
+    if given is not None:   # drawn all the same, so the rest of the image is the same set's
+        pose = given
     name = names[int(rng.choice(len(names), p=p))]
     r = render_holder(pose, camera, holder, PRESETS[name], seed=img_seed)
     fname = f"img_{i:04d}.png"
@@ -927,8 +929,11 @@ def _set_item(args) -> tuple[dict, bytes]:
 def render_set(count: int, seed: int, out_dir, camera: Camera | None = None,
                holder: Holder | None = None, mix=DEFAULT_MIX, max_angle_deg: float = 10.0,
                max_shift_mm: float = 20.0, progress=None, workers: int = 1,
-               scheduler=None) -> Path:
+               scheduler=None, poses: list[Pose] | None = None) -> Path:
     """Render ``count`` images at random poses into ``out_dir`` with its ``truth.json``.
+
+    ``poses``: the ``T_cam_holder`` of each image instead (``count`` of them), e.g. a holder
+    seen from the stations of a robot cell.
 
     The difficulty of each image is drawn from ``mix`` (preset names and weights) and recorded
     under ``"difficulty"``; image ``i`` uses the seed ``SeedSequence([seed, i])``, so any image
@@ -949,8 +954,10 @@ def render_set(count: int, seed: int, out_dir, camera: Camera | None = None,
     p /= p.sum()
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    jobs = [(i, seed, camera, holder, names, p, max_angle_deg, max_shift_mm)
-            for i in range(count)]
+    if poses is not None and len(poses) != count:
+        raise InputError(f"{len(poses)} poses given for {count} images")
+    jobs = [(i, seed, camera, holder, names, p, max_angle_deg, max_shift_mm,
+             None if poses is None else poses[i]) for i in range(count)]
     written = [0]
 
     def write(i, result):
