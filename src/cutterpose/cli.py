@@ -108,6 +108,13 @@ def _render_camera(spec: str | None):
     return load_camera(spec)
 
 
+# robot-cell options shared by render and render-set (issue 11)
+_CELL_HANDEYE = typer.Option(None, "--handeye", help="Robot cell: handeye.json with the true "
+                             "T_flange_cam.")
+_CELL_HOLDER = typer.Option(None, "--holder-base-pose", help="Robot cell: the holder in the "
+                            "base frame, x_mm,y_mm,z_mm,qx,qy,qz,qw or a one-row pose file.")
+
+
 @app.command("render")
 @friendly
 def render_cmd(
@@ -125,11 +132,8 @@ def render_cmd(
                                     "T_base_flange (pose file row or x_mm,y_mm,z_mm,qx,qy,qz,"
                                     "qw); needs --handeye and --holder-base-pose, replaces "
                                     "--pose."),
-    handeye: str = typer.Option(None, "--handeye", help="Robot cell: handeye.json with the "
-                                "true T_flange_cam."),
-    holder_base_pose: str = typer.Option(None, "--holder-base-pose", help="Robot cell: the "
-                                         "holder in the base frame, x_mm,y_mm,z_mm,qx,qy,qz,"
-                                         "qw or a one-row pose file."),
+    handeye: str = _CELL_HANDEYE,
+    holder_base_pose: str = _CELL_HOLDER,
     engine: str = typer.Option("analytic", help="analytic (closed-form ray casting) or pbr "
                                "(Mitsuba 3 path tracing of field conditions; extra [field])."),
     spp: int = typer.Option(None, min=1, help="pbr: samples per pixel (preset: 12)."),
@@ -225,11 +229,8 @@ def render_set_cmd(
     flange_poses: str = typer.Option(None, "--flange-poses", help="Robot cell: a pose file of "
                                      "T_base_flange, one image per row (replaces --count); "
                                      "needs --handeye and --holder-base-pose."),
-    handeye: str = typer.Option(None, "--handeye", help="Robot cell: handeye.json with the "
-                                "true T_flange_cam."),
-    holder_base_pose: str = typer.Option(None, "--holder-base-pose", help="Robot cell: the "
-                                         "holder in the base frame, x_mm,y_mm,z_mm,qx,qy,qz,qw "
-                                         "or a one-row pose file."),
+    handeye: str = _CELL_HANDEYE,
+    holder_base_pose: str = _CELL_HOLDER,
 ):
     """Render an image set with its truth.json (PROTOCOL.md, exchange formats)."""
     from rich.progress import Progress
