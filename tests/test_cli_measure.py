@@ -72,3 +72,21 @@ def test_json_and_overlay(files, tmp_path):
     assert set(d["pose"]) >= {"alpha_deg", "X_mm", "R_cam_holder", "frames"}
     assert len(d["corners_px"]) == 20 and d["std"]["Z_mm"] > 0
     assert cv2.imread(str(tmp_path / "o.png")) is not None
+
+
+def test_edge_shape_option_reaches_the_verdict(tmp_path):
+    """--edge-shape unknown makes the budget carry the chamfer's unseen depth: the same clean
+    image accepted as round is refused, with the budget's reason; a bad value is an error."""
+    from cutterpose.geometry.camera import default_camera
+    from cutterpose.geometry.pose import Pose
+    from cutterpose.render.analytic import render_holder
+
+    img = render_holder(Pose.from_euler(2, -3, 4, 8, -6, 612), default_camera("table1"),
+                        seed=7).image
+    cv2.imwrite(str(tmp_path / "h.png"), img)
+    ok = runner.invoke(app, ["measure", str(tmp_path / "h.png")])
+    unknown = runner.invoke(app, ["measure", str(tmp_path / "h.png"), "--edge-shape", "unknown"])
+    assert ok.exit_code == 0, ok.output
+    assert unknown.exit_code == 3 and "error budget" in unknown.output
+    bad = runner.invoke(app, ["measure", str(tmp_path / "h.png"), "--edge-shape", "oval"])
+    assert bad.exit_code == 2 and "edge_shape" in bad.output

@@ -303,6 +303,9 @@ def measure_cmd(
     as_json: bool = typer.Option(False, "--json", help="One JSON object on stdout."),
     chain: str = typer.Option("field", help="Image chain: field (gradient outline, robust "
                               "lines; default) or paper (section 2.1: threshold 70, contour)."),
+    edge_shape: str = typer.Option("round", help="The pocket edge's break as the holder's "
+                                   "drawing gives it: round, chamfer, or unknown (the verdict "
+                                   "then carries the chamfer's depth the contour cannot see)."),
     handeye: str = typer.Option(None, "--handeye", help="handeye.json: also answer in the "
                                 "robot's base frame (needs --flange-pose)."),
     flange_pose: str = typer.Option(None, "--flange-pose", help="T_base_flange at the "
@@ -352,7 +355,10 @@ def measure_cmd(
     t0 = time.perf_counter()
     img = load_frame(image, cam, parse_raw_size(raw) if raw else None)
     load_ms = (time.perf_counter() - t0) * 1e3
-    m = measure(img, cam, hol, method, params=FeatureParams.for_camera(cam, chain=chain))
+    from .pipeline import QualityLimits
+
+    m = measure(img, cam, hol, method, params=FeatureParams.for_camera(cam, chain=chain),
+                limits=QualityLimits(edge_shape=edge_shape))
     m.timings_ms = {"load": load_ms} | m.timings_ms
     if robot is not None:
         from .robot import locate

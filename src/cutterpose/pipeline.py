@@ -59,6 +59,9 @@ from .solvers.estimate import PoseEstimate
 __all__ = ["QualityLimits", "Quality", "Measurement", "measure", "measure_features",
            "order_for_model", "pose_std", "demo", "DOF_NAMES", "edge_wear_effect"]
 
+#: the pocket edge's break shapes a holder's drawing may give (QualityLimits.edge_shape)
+EDGE_SHAPES = ("round", "chamfer", "unknown")
+
 DOF_NAMES = ("alpha_deg", "beta_deg", "gamma_deg", "X_mm", "Y_mm", "Z_mm")
 
 
@@ -88,6 +91,11 @@ class QualityLimits:
     #: "chamfer" (only that shape is fitted), or "unknown" (both; the budget then carries the
     #: chamfer's depth, which the contour cannot see: every pose is refused, docs/RESULTS.md)
     edge_shape: str = "round"
+
+    def __post_init__(self):
+        if self.edge_shape not in EDGE_SHAPES:
+            raise InputError(f"edge_shape must be one of {', '.join(EDGE_SHAPES)}, got "
+                             f"{self.edge_shape!r}")
 
 
 @dataclass
@@ -374,10 +382,7 @@ def _solve(method: str, corners_px: np.ndarray, camera: Camera, holder: Holder,
 
         look = EdgeLook() if order == "holder" else EdgeLook(innermost=0.0)
         shapes = {"unknown": ("round", "chamfer"), "round": ("round",),
-                  "chamfer": ("chamfer",)}.get(limits.edge_shape)
-        if shapes is None:
-            raise InputError(f"edge_shape must be 'unknown', 'round' or 'chamfer', got "
-                             f"{limits.edge_shape!r}")
+                  "chamfer": ("chamfer",)}[limits.edge_shape]
         return refine_radius(est, ideal, camera, holder, look=look, shapes=shapes,
                              ordered=order == "holder")
     if method == "dm+" and order == "holder" and H is not None:
