@@ -194,16 +194,11 @@ def approach_limits() -> QualityLimits:
 
 
 def approach_params(camera: Camera) -> FeatureParams:
-    """Image-stage parameters of the full measurement during an approach.
-
-    The region search matches a template of the holder at the nominal 600 mm; at 800-900 mm
-    the holder is 1.3-1.5 times smaller, the best match scores ~0.3 and lands off centre. A
-    lower acceptance score and a wide margin keep the whole pocket in the region (the later
-    stages still refuse anything that is not the holder). The field chain's outline match has
-    no scale search yet, so the approach uses the threshold chain (``chain="paper"``).
-    """
-    return FeatureParams.for_camera(camera, chain="paper", roi_min_score=0.2,
-                                    roi_margin_frac=0.5)
+    """Image-stage parameters of the full measurement during an approach: the field chain with
+    outline templates at 600-900 mm (``roi_depths_mm``; the default matches only the nominal
+    600 mm, where a holder at 800-900 mm, 1.3-1.5 times smaller, scores ~0.3 and lands off
+    centre)."""
+    return FeatureParams.for_camera(camera, roi_depths_mm=(600.0, 675.0, 750.0, 825.0, 900.0))
 
 
 @dataclass

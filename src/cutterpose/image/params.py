@@ -69,6 +69,7 @@ class FeatureParams:
     # --- field chain (issue 10) ---
     #: in-plane turns of the outline template (deg; the working range is +-10 deg)
     roi_gammas_deg: tuple = (-12.0, -9.0, -6.0, -3.0, 0.0, 3.0, 6.0, 9.0, 12.0)
+    roi_depths_mm: tuple = (600.0,)     #: outline templates at these depths (approach: more)
     roi_line_px: int = 3                  #: width of the template's outline (reduced px)
     roi_min_edge_score: float = 0.3       #: outline orientation match below this: no holder
     #: half widths (px) of the successive model-guided searches along the outline's normals

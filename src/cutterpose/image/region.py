@@ -110,19 +110,19 @@ _OUTLINE_CACHE: dict = {}
 
 
 def _outline_template(camera: Camera, holder: Holder, downscale: int, gamma_deg: float,
-                      line_px: int):
-    """Doubled-angle template of the pocket outline at the nominal pose turned by
-    ``gamma_deg`` about the optical axis, on the image reduced ``downscale`` times: two float32
+                      line_px: int, depth_mm: float = 600.0):
+    """Doubled-angle template of the pocket outline at the nominal pose (at ``depth_mm``) turned
+    by ``gamma_deg`` about the optical axis, on the image reduced ``downscale`` times: two float32
     channels ``(cos 2 phi, sin 2 phi)`` along the outline (``phi``: the edge normal's angle, a
     ``line_px`` wide band), zero elsewhere; with the template's origin (reduced px), the
     homography plane (mm) -> ideal px of its pose and its number of outline pixels. Cached."""
     key = (repr(camera), holder.corners_mm.tobytes(), int(downscale), round(gamma_deg, 3),
-           int(line_px))
+           int(line_px), round(float(depth_mm), 3))
     if key in _OUTLINE_CACHE:
         return _OUTLINE_CACHE[key]
     s = float(downscale)
     P = holder.points_holder_mm
-    pose = Pose.from_euler(0.0, 0.0, gamma_deg, 0.0, 0.0, 600.0)
+    pose = Pose.from_euler(0.0, 0.0, gamma_deg, 0.0, 0.0, float(depth_mm))
     ideal = (P @ pose.R.T + pose.t_mm) @ camera.K.T
     ideal = ideal[:, :2] / ideal[:, 2:3]
     H = camera.K @ np.column_stack([pose.R[:, 0], pose.R[:, 1], pose.t_mm])
@@ -239,21 +239,23 @@ def match_outline(small: np.ndarray, camera: Camera, holder: Holder, params: Fea
     coarse = cv2.resize(field, (field.shape[1] // 2, field.shape[0] // 2),
                         interpolation=cv2.INTER_AREA)
     best = None
-    tpls = [_outline_template(camera, holder, 2 * s8, g, 2) for g in params.roi_gammas_deg]
+    # every turn at every depth (one depth, the nominal 600 mm, unless an approach asks more)
+    gd = [(g, z) for z in params.roi_depths_mm for g in params.roi_gammas_deg]
+    tpls = [_outline_template(camera, holder, 2 * s8, g, 2, z) for g, z in gd]
     for t in tpls:
         if t[0].shape[0] > coarse.shape[0] or t[0].shape[1] > coarse.shape[1]:
             raise FeatureError("the holder outline is larger than the image: check the camera "
                                "model")
-    for g, (_tpl, origin, _H, n_on), res in zip(params.roi_gammas_deg, tpls,
-                                             correlate_templates(coarse, [t[0] for t in tpls])):
+    for (g, z), (_tpl, origin, _H, n_on), res in zip(
+            gd, tpls, correlate_templates(coarse, [t[0] for t in tpls])):
         _, sc, _, loc = cv2.minMaxLoc(res)
         sc /= n_on
         if best is None or sc > best[0]:
-            best = (sc, g, (np.array(loc) - origin) * 2)
-    _, g0, shift8 = best
+            best = (sc, g, z, (np.array(loc) - origin) * 2)
+    _, g0, z0, shift8 = best
     best = None
     for g in (g0 - 1.5, g0, g0 + 1.5):
-        tpl, origin, H, n_on = _outline_template(camera, holder, s8, g, params.roi_line_px)
+        tpl, origin, H, n_on = _outline_template(camera, holder, s8, g, params.roi_line_px, z0)
         th, tw = tpl.shape[:2]
         c0 = np.rint(shift8 + origin).astype(int) - 4  # window's top-left, reduced px
         x0, y0 = max(c0[0], 0), max(c0[1], 0)
