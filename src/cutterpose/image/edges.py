@@ -101,38 +101,19 @@ def _half_max_centroids(g: np.ndarray, o0: float, step: float,
     -------
     offsets : edge positions of the accepted rows; rows : their indices.
     """
-    G = g.shape[1]
     rows_all = np.arange(len(g))
-    # small integer types: these masks and index arrays are (profiles x samples)
-    idx = np.arange(G, dtype=np.int16)
-    if innermost > 0 and G >= 3:
-        gmax = g.max(axis=1)
-        gl, gr = np.empty_like(g), np.empty_like(g)
-        gl[:, 0], gl[:, 1:] = np.inf, g[:, :-1]
-        gr[:, -1], gr[:, :-1] = -np.inf, g[:, 1:]
-        cand = (g >= gl) & (g > gr) & (g >= innermost * gmax[:, None])
+    if innermost > 0 and g.shape[1] >= 3:
+        gl, gr = _neighbours(g)
+        cand = (g >= gl) & (g > gr) & (g >= innermost * g.max(axis=1)[:, None])
         cand[:, :first] = False
         j = np.where(cand.any(axis=1), np.argmax(cand, axis=1), np.argmax(g, axis=1))
-        peak = g[rows_all, j]
-        half = 0.5 * peak
-        jj = j.astype(np.int16)[:, None]
-        # the run also stops at a valley (a local minimum below 0.8 of the peak) towards the
-        # next rise, so that two rises merged above half height are not averaged
-        valley = (g <= gl) & (g < gr) & (g < 0.8 * peak[:, None])
-        below = (g <= half[:, None]) | valley
+        # the run also stops at a valley towards the next rise, so that two rises merged
+        # above half height are not averaged
+        cen, ok = _run_centroids(g, j, gl, gr)
     else:
         j = np.argmax(g, axis=1)
-        peak = g[rows_all, j]
-        half = 0.5 * peak
-        jj = j.astype(np.int16)[:, None]
-        below = g <= half[:, None]
-    left = np.where(below & (idx < jj), idx, np.int16(-1)).max(axis=1)
-    right = np.where(below & (idx > jj), idx, np.int16(G)).min(axis=1)
-    inside = (idx > left[:, None]) & (idx < right[:, None])
-    w = np.where(inside, g - half[:, None], 0.0)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        cen = (w @ np.arange(G, dtype=w.dtype)).astype(float) / w.sum(axis=1)
-    ok = (left >= 0) & (right < G) & (peak > 0) & np.isfinite(cen)
+        cen, ok = _run_centroids(g, j)
+    peak = g[rows_all, j]
     if groups is not None:  # the profiles of several lines at once: the median per line
         med = group_median(peak[ok], groups[ok], n_groups)
         ok[ok] &= peak[ok] > 0.3 * med[groups[ok]]
@@ -154,9 +135,7 @@ def _nearest_rise_centroids(g: np.ndarray, o0: float, step: float, o_expected: n
     offsets : edge positions of the kept rows; rows : their indices.
     """
     G = g.shape[1]
-    gl, gr = np.empty_like(g), np.empty_like(g)
-    gl[:, 0], gl[:, 1:] = np.inf, g[:, :-1]
-    gr[:, -1], gr[:, :-1] = -np.inf, g[:, 1:]
+    gl, gr = _neighbours(g)
     gmax = g.max(axis=1)
     cand = (g >= gl) & (g > gr) & (g >= fraction * gmax[:, None]) & (g > 0)
     pos = o0 + step * np.arange(G)
@@ -168,16 +147,28 @@ def _nearest_rise_centroids(g: np.ndarray, o0: float, step: float, o_expected: n
     return o0 + step * cen[rows], rows
 
 
-def _run_centroids(g: np.ndarray, j: np.ndarray, gl: np.ndarray, gr: np.ndarray):
+def _neighbours(g: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Each sample's left and right neighbour along the rows (+inf / -inf past the ends)."""
+    gl, gr = np.empty_like(g), np.empty_like(g)
+    gl[:, 0], gl[:, 1:] = np.inf, g[:, :-1]
+    gr[:, -1], gr[:, :-1] = -np.inf, g[:, 1:]
+    return gl, gr
+
+
+def _run_centroids(g: np.ndarray, j: np.ndarray, gl: np.ndarray | None = None,
+                   gr: np.ndarray | None = None):
     """Centroid (sample index) of ``g - g_j / 2`` over the run round peak ``j`` of each row
-    where ``g > g_j / 2``, stopped at valleys (local minima below 0.8 of the peak); ``ok``
-    where the run stays inside the row."""
+    where ``g > g_j / 2``, stopped at valleys (local minima below 0.8 of the peak) when the
+    neighbours ``gl``, ``gr`` are given; ``ok`` where the run stays inside the row."""
     G = g.shape[1]
+    # small integer types: these masks and index arrays are (profiles x samples)
     idx = np.arange(G, dtype=np.int16)
     peak = g[np.arange(len(g)), j]
     half = 0.5 * peak
     jj = j.astype(np.int16)[:, None]
-    below = (g <= half[:, None]) | ((g <= gl) & (g < gr) & (g < 0.8 * peak[:, None]))
+    below = g <= half[:, None]
+    if gl is not None:
+        below |= (g <= gl) & (g < gr) & (g < 0.8 * peak[:, None])
     left = np.where(below & (idx < jj), idx, np.int16(-1)).max(axis=1)
     right = np.where(below & (idx > jj), idx, np.int16(G)).min(axis=1)
     inside = (idx > left[:, None]) & (idx < right[:, None])
