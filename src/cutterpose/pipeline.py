@@ -616,8 +616,6 @@ def _with_robot(m: Measurement, camera, holder, handeye, T_base_flange, robot_ac
     if handeye is None and T_base_flange is None:
         return m
     if handeye is None or T_base_flange is None:
-        from .errors import InputError
-
         raise InputError("the base frame needs both a hand-eye file and a flange pose")
     from .robot.locate import locate
 
