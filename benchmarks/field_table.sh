@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # The field table of issue 10 (docs/RESULTS.md): every pbr set through `experiment images`
-# with the field chain (dm+r, dm+, dm, opnp) and with the paper's chain as written (dm-paper),
+# with the field chain (dm+b, dm+r, dm+, dm, opnp) and with the paper's chain as written (dm-paper),
 # then one table. Usage: benchmarks/field_table.sh DATA_DIR OUT_DIR [SET ...]
 # (sets: folder names under DATA_DIR, e.g. pbr_sharp_s100 pbr_new_s200 pbr_worn_s300).
 set -euo pipefail
@@ -9,7 +9,7 @@ sets=("$@")
 CP=${CUTTERPOSE:-cutterpose}
 pairs=()
 for s in "${sets[@]}"; do
-  $CP experiment images "$data/$s" --methods dm+r,dm+,dm,opnp --out "$out/$s" --workers 2 > /dev/null
+  $CP experiment images "$data/$s" --methods dm+b,dm+r,dm+,dm,opnp --out "$out/$s" --workers 2 > /dev/null
   $CP experiment images "$data/$s" --methods dm-paper --chain as-written \
       --out "$out/${s}_paper" --workers 2 > /dev/null
   pairs+=("$s=$out/$s" "${s}/paper-as-written=$out/${s}_paper")

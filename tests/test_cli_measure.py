@@ -75,8 +75,10 @@ def test_json_and_overlay(files, tmp_path):
 
 
 def test_edge_shape_option_reaches_the_verdict(tmp_path):
-    """--edge-shape unknown makes the budget carry the chamfer's unseen depth: the same clean
-    image accepted as round is refused, with the budget's reason; a bad value is an error."""
+    """With dm+r (corners only), --edge-shape unknown makes the budget carry the chamfer's
+    unseen depth: the same clean image accepted as round is refused, with the budget's reason;
+    dm+b (the default) measures the band and accepts it with the shape unknown (the default);
+    a bad value is an error."""
     from cutterpose.geometry.camera import default_camera
     from cutterpose.geometry.pose import Pose
     from cutterpose.render.analytic import render_holder
@@ -84,9 +86,12 @@ def test_edge_shape_option_reaches_the_verdict(tmp_path):
     img = render_holder(Pose.from_euler(2, -3, 4, 8, -6, 612), default_camera("table1"),
                         seed=7).image
     cv2.imwrite(str(tmp_path / "h.png"), img)
-    ok = runner.invoke(app, ["measure", str(tmp_path / "h.png")])
-    unknown = runner.invoke(app, ["measure", str(tmp_path / "h.png"), "--edge-shape", "unknown"])
+    ok = runner.invoke(app, ["measure", str(tmp_path / "h.png"), "--method", "dm+r",
+                             "--edge-shape", "round"])
+    unknown = runner.invoke(app, ["measure", str(tmp_path / "h.png"), "--method", "dm+r"])
     assert ok.exit_code == 0, ok.output
     assert unknown.exit_code == 3 and "error budget" in unknown.output
+    band = runner.invoke(app, ["measure", str(tmp_path / "h.png")])
+    assert band.exit_code == 0, band.output
     bad = runner.invoke(app, ["measure", str(tmp_path / "h.png"), "--edge-shape", "oval"])
     assert bad.exit_code == 2 and "edge_shape" in bad.output

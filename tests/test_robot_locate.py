@@ -127,9 +127,11 @@ def test_measure_in_the_base_frame_end_to_end(tmp_path, cam_quarter):
     rep = cell.report([true_A], np.random.default_rng(0))[0]
     img = render_holder(cell.camera_view(true_A, T_bh), cam_quarter, HOLDER, "easy", seed=3)
     he = HandEye(cell.T_flange_cam, cell.T_base_plate, np.diag([0.02 ** 2] * 3 + [4e-5 ** 2] * 3))
-    m = measure(img.image, cam_quarter, HOLDER, handeye=he, T_base_flange=rep,
+    # a quarter-resolution camera cannot resolve the edge's band (1 px per mm): the frames are
+    # what this test is about, so the corner method
+    m = measure(img.image, cam_quarter, HOLDER, method="dm+", handeye=he, T_base_flange=rep,
                 robot_accuracy=RobotAccuracy(0.03, 0.005))
-    assert m.ok
+    assert m.ok, m.quality.reason
     err = np.linalg.norm(m.robot.T_base_grasp.pose.t_mm - T_bh.t_mm)
     assert err < 3.0 and geodesic_deg(m.robot.T_base_holder.pose.R, T_bh.R) < 0.5
     assert "T_base_grasp" in m.to_dict()
@@ -141,7 +143,8 @@ def test_measure_in_the_base_frame_end_to_end(tmp_path, cam_quarter):
                    .splitlines()[1].split(","))
     res = CliRunner().invoke(app, ["measure", str(tmp_path / "img.png"), "--camera",
                                    str(tmp_path / "cam.json"), "--handeye",
-                                   str(tmp_path / "he.json"), "--flange-pose", row, "--json"])
+                                   str(tmp_path / "he.json"), "--flange-pose", row, "--json",
+                                   "--method", "dm+"])
     assert res.exit_code in (0, 4), res.output
     d = json.loads(res.output.splitlines()[0])
     np.testing.assert_allclose(np.array(d["T_base_holder"])[:3, 3],

@@ -91,7 +91,7 @@ def list_methods():
 @friendly
 def demo(out: str = typer.Option("results/demo", help="Output folder.")):
     """The main job on the bundled default data: render the seeded example image through the
-    Table 1 camera, measure it with dm+, print the pose and write the overlay."""
+    Table 1 camera, measure it (dm+b), print the pose and write the overlay."""
     from .pipeline import demo as pipeline_demo
 
     pipeline_demo(out)
@@ -297,15 +297,17 @@ def measure_cmd(
     raw: str = typer.Option(None, "--raw", help="Read IMAGE as a raw Mono8 frame of "
                             "WIDTHxHEIGHT pixels (as a GigE camera delivers it; no decode)."),
     holder: str = typer.Option(None, help="Holder JSON file (default: the bundled holder)."),
-    method: str = typer.Option("dm+r", help="Pose method (cutterpose.methods; dm+r: the design "
-                               "edge's pose through a rounded edge; dm: the paper's chain)."),
+    method: str = typer.Option("dm+b", help="Pose method (cutterpose.methods; dm+b: the design "
+                               "edge's pose from the band across each broken edge; dm+r: from "
+                               "the corners and one radius; dm: the paper's chain)."),
     overlay: str = typer.Option(None, "--overlay", help="Write an overlay PNG here."),
     as_json: bool = typer.Option(False, "--json", help="One JSON object on stdout."),
     chain: str = typer.Option("field", help="Image chain: field (gradient outline, robust "
                               "lines; default) or paper (section 2.1: threshold 70, contour)."),
-    edge_shape: str = typer.Option("round", help="The pocket edge's break as the holder's "
-                                   "drawing gives it: round, chamfer, or unknown (the verdict "
-                                   "then carries the chamfer's depth the contour cannot see)."),
+    edge_shape: str = typer.Option("unknown", help="The pocket edge's break as the holder's "
+                                   "drawing gives it: round, chamfer, or unknown (default: dm+b "
+                                   "tells them apart; dm+r's verdict then carries the chamfer's "
+                                   "depth the contour cannot see)."),
     handeye: str = typer.Option(None, "--handeye", help="handeye.json: also answer in the "
                                 "robot's base frame (needs --flange-pose)."),
     flange_pose: str = typer.Option(None, "--flange-pose", help="T_base_flange at the "
@@ -423,9 +425,8 @@ def experiment_images_cmd(
                               "2.1 with this package's refinements and fall-backs) or "
                               "as-written (section 2.1 exactly: threshold 70, contour lines, "
                               "no refinement, no fall-back)."),
-    edge_shape: str = typer.Option("round", help="The pocket edge's break (holder drawing): "
-                                   "round, chamfer or unknown (both; the budget carries the "
-                                   "chamfer's unseen depth)."),
+    edge_shape: str = typer.Option("unknown", help="The pocket edge's break (holder drawing): "
+                                   "round, chamfer or unknown (default: both shapes fitted)."),
 ):
     """Table 2 figures of every method on an image set (trials.csv, summary.md)."""
     from rich.progress import Progress

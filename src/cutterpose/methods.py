@@ -53,6 +53,9 @@ _ENTRIES: dict[str, tuple[str, str, bool, str]] = {
             "distance matching + continuous correspondence-free refinement"),
     "dm+r": ("cutterpose.solvers.edge_radius", "solve", False,
              "dm+ + the radius of the broken pocket edge: the design edge's pose"),
+    "dm+b": ("cutterpose.solvers.edge_band", "solve", False,
+             "dm+ + the band across every edge fitted with the edge model: the design edge's "
+             "pose (needs the image)"),
 }
 
 

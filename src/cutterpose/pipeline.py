@@ -20,12 +20,14 @@ their Jacobian with respect to ``(alpha, beta, gamma, X, Y, Z)``,
 
     s^2 = |r|^2 / (40 - 6),        Cov = s^2 (J^T J)^-1,        std = sqrt(diag Cov).
 
-The default method is ``dm+r`` (:mod:`cutterpose.solvers.edge_radius`): ``dm+`` followed by the
-joint fit of the pose and the radius of the broken pocket edge, so that the pose is that of the
-design edge on field holders. The verdict is an error budget (:mod:`cutterpose.budget`): noise,
-radius, edge model and edge variation for ``dm+r`` (the std above and the edge-wear shift for
-the other methods), propagated to the position of a grasp point and to the rotation; a pose is
-refused when its 3-sigma figures exceed the tolerance (1 mm, 0.3 deg), with the reason. The
+The default method is ``dm+b`` (:mod:`cutterpose.solvers.edge_band`): ``dm+`` for the start,
+then the band across every broken pocket edge fitted with the edge model
+(:mod:`cutterpose.image.edge_band`), so that the pose is that of the design edge on field
+holders. ``dm+r`` (:mod:`cutterpose.solvers.edge_radius`) fits one radius from the corners
+alone. The verdict is an error budget (:mod:`cutterpose.budget`): noise, edge model and model
+floor for ``dm+b``; noise, radius, edge model and edge variation for ``dm+r`` (the std above and
+the edge-wear shift for the other methods), propagated to the position of a grasp point and
+to the rotation; a pose is refused when its 3-sigma figures exceed the tolerance (1 mm, 0.3 deg), with the reason. The
 camera-frame 6 x 6 covariance is ``Measurement.covariance_cam`` (order
 :data:`cutterpose.budget.COVARIANCE_CAM_ORDER`).
 
@@ -87,10 +89,11 @@ class QualityLimits:
     #: the point (holder frame, mm) whose position the budget checks: the origin, the centre of
     #: the pocket's top plane (a holder file's grasp frame may be given instead)
     grasp_point_mm: tuple = (0.0, 0.0, 0.0)
-    #: the pocket edge's break as the holder's drawing gives it: "round" (default) or
-    #: "chamfer" (only that shape is fitted), or "unknown" (both; the budget then carries the
-    #: chamfer's depth, which the contour cannot see: every pose is refused, docs/RESULTS.md)
-    edge_shape: str = "round"
+    #: the pocket edge's break as the holder's drawing gives it: "round" or "chamfer" (only that
+    #: shape is fitted), or "unknown" (default: both; ``dm+b`` tells them apart from the band's
+    #: profile; ``dm+r``, from the corners alone, cannot, and its budget then carries a
+    #: chamfer's unseen depth, refusing nearly every pose: docs/RESULTS.md section 11)
+    edge_shape: str = "unknown"
 
     def __post_init__(self):
         if self.edge_shape not in EDGE_SHAPES:
@@ -165,7 +168,8 @@ class Measurement:
 
     @property
     def edge_radius_mm(self) -> float:
-        """The estimated radius of the pocket edge's break (``dm+r``; NaN otherwise)."""
+        """The estimated radius of the pocket edge's break (``dm+r``, ``dm+b``: the median over
+        the edge segments; NaN otherwise)."""
         b = self.quality.budget
         return math.nan if b is None else b.radius_mm
 
@@ -195,6 +199,9 @@ class Measurement:
                              "threshold": f.threshold, "refined": f.refined,
                              "n_segments": len(f.segments), "segmentation": f.segmentation,
                              "order": f.order, "visible": np.asarray(f.visible).tolist()}
+        band = None if self.estimate is None else self.estimate.info.get("band")
+        if band is not None:
+            d["edge_band"] = band.to_dict()
         if self.robot is not None:
             d.update(self.robot.to_dict())
         return d
@@ -436,6 +443,25 @@ def _solve(method: str, corners_px: np.ndarray, camera: Camera, holder: Holder,
     return m.solve(corners_px, camera, holder)
 
 
+def _solve_band(features: Features, camera: Camera, holder: Holder, limits: QualityLimits
+                ) -> PoseEstimate:
+    """``dm+b``: ``dm+`` for the start, then the band across the edges
+    (:func:`cutterpose.solvers.edge_band.measure_band`)."""
+    from .solvers.edge_band import measure_band
+
+    if features.image is None:
+        return PoseEstimate.failure("dm+b", "the features carry no image to measure the band in")
+    start = _solve("dm+", features.corners_px, camera, holder, limits, features.order,
+                   features.H_ideal_holder)
+    shapes = {"unknown": ("round", "chamfer"), "round": ("round",),
+              "chamfer": ("chamfer",)}[limits.edge_shape]
+    seen = features.lines_visible if features.order == "holder" else None
+    est = measure_band(features.image, camera, holder, start, seen, shapes)
+    if est:
+        est.info["start"] = start
+    return est
+
+
 def ambiguity_ratio(est: PoseEstimate, corners_ideal_px, camera: Camera, holder: Holder,
                     min_rotation_deg: float = 1.0, order: str = "contour") -> float:
     """RMS residual of the best pose over that of the best *different* candidate (rotation
@@ -502,15 +528,18 @@ def _verdict(est: PoseEstimate, std, r, limits: QualityLimits, amb: float = math
     return q
 
 
-def measure_features(features: Features, camera: Camera, holder: Holder, method: str = "dm+r",
+def measure_features(features: Features, camera: Camera, holder: Holder, method: str = "dm+b",
                      limits: QualityLimits | None = None) -> Measurement:
     """Pose, std and verdict from already detected features (one image, several methods)."""
     limits = limits or QualityLimits()
     timings = dict(features.timings_ms)
     t0 = time.perf_counter()
     try:
-        est = _solve(method, features.corners_px, camera, holder, limits, features.order,
-                     features.H_ideal_holder)
+        if method == "dm+b":
+            est = _solve_band(features, camera, holder, limits)
+        else:
+            est = _solve(method, features.corners_px, camera, holder, limits, features.order,
+                         features.H_ideal_holder)
     except CutterposeError as e:
         est = PoseEstimate.failure(method, f"{type(e).__name__}: {e}")
     timings["solve"] = (time.perf_counter() - t0) * 1e3
@@ -523,7 +552,14 @@ def measure_features(features: Features, camera: Camera, holder: Holder, method:
         pose = Pose(est.R_cam_holder, est.t_cam_holder_mm)
         bias, offset_px = edge_wear_effect(pose, features, camera, holder)
         fit = est.info.get("radius_fit")
-        if fit is not None:
+        band = est.info.get("band")
+        if band is not None:
+            # dm+b: residuals are along the edge normals, per segment (no corner residuals)
+            budget = budget_from_dof_cov(band.cov_parts, pose.dof, limits.grasp_point_mm,
+                                         limits.tolerance, band.radius_mm)
+            inl = band.weights > 0.5
+            r = band.residuals_px[inl, None] * band.fit.profiles.normals_ideal[inl]
+        elif fit is not None:
             # dm+r: the model corners of the broken edge give the residuals and the budget
             r = fit.residuals_px
             budget = budget_from_fit(fit, camera, holder, limits.grasp_point_mm,
@@ -547,7 +583,7 @@ def measure_features(features: Features, camera: Camera, holder: Holder, method:
 
 
 def measure(image, camera: Camera | None = None, holder: Holder | None = None,
-            method: str = "dm+r", params: FeatureParams | None = None,
+            method: str = "dm+b", params: FeatureParams | None = None,
             limits: QualityLimits | None = None, grasp_point_mm=None, *, handeye=None,
             T_base_flange=None, robot_accuracy=None) -> Measurement:
     """Measure the holder's pose in one image (and, given ``handeye`` and ``T_base_flange``,
@@ -623,7 +659,7 @@ def _with_robot(m: Measurement, camera, holder, handeye, T_base_flange, robot_ac
     return m
 
 
-def demo(out_dir, method: str = "dm+r", seed: int = 7, echo=print) -> Measurement:
+def demo(out_dir, method: str = "dm+b", seed: int = 7, echo=print) -> Measurement:
     """The ``make demo`` example: render a seeded image of the holder (renderer, preset
     "easy", Table 1 camera), measure it, write ``demo.png``, ``demo_overlay.png`` and
     ``demo.json`` (with the true pose) into ``out_dir``, and report through ``echo`` (None:

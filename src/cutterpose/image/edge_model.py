@@ -263,7 +263,8 @@ def _convolve_rows(a: np.ndarray, k: np.ndarray) -> np.ndarray:
     return out[..., 2 * h: 2 * h + a.shape[-1]].astype(float)
 
 
-def profiles(radius_mm, view: EdgeView, look: EdgeLook = EdgeLook(), half_width_px=None):
+def profiles(radius_mm, view: EdgeView, look: EdgeLook = EdgeLook(), half_width_px=None,
+             step_px: float = GRID_STEP_PX):
     """Noise-free image profiles across every edge end for each radius (module doc).
 
     The surface point seen at image offset ``w`` is found in closed form: on the fillet
@@ -276,6 +277,8 @@ def profiles(radius_mm, view: EdgeView, look: EdgeLook = EdgeLook(), half_width_
     ----------
     radius_mm : (M,) radii (mm), or (N, 2, M) per edge end.
 
+    step_px : the grid's step (px); the kernel is sampled on it.
+
     Returns
     -------
     w_px : (G,) grid across the edge (px, outwards positive, 0 = the design edge's image).
@@ -284,8 +287,8 @@ def profiles(radius_mm, view: EdgeView, look: EdgeLook = EdgeLook(), half_width_
     r = _radii(radius_mm, view)
     if half_width_px is None:
         half_width_px = _half_width_px(r, view, look)
-    m = int(np.ceil(half_width_px / GRID_STEP_PX))
-    w = GRID_STEP_PX * np.arange(-m, m + 1)
+    m = int(np.ceil(half_width_px / step_px))
+    w = step_px * np.arange(-m, m + 1)
     raw = _raw_profiles(r, view, look, w)
     w = w.astype(np.float32)
     blurred = _convolve_rows(raw, _kernel(look, w[1] - w[0]))

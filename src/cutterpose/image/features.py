@@ -179,7 +179,7 @@ def detect_features(image: np.ndarray, camera: Camera, holder: Holder,
                     contour_px=contour_px, edge_points_px=edges, roi=roi, roi_score=score,
                     threshold=int(level), refined=True, timings_ms=timings,
                     segmentation="model", edge_darkening=dark, edge_offset_px=off,
-                    inward_ideal=inward)
+                    inward_ideal=inward, image=image)
 
 
 def _timer():
@@ -298,4 +298,4 @@ def detect_features_field(image: np.ndarray, camera: Camera, holder: Holder,
                     roi_score=score, threshold=-1, refined=True, timings_ms=timings,
                     segmentation="field", edge_darkening=dark, edge_offset_px=off,
                     inward_ideal=inward, visible=visible, order="holder", lines_visible=seen,
-                    H_ideal_holder=H)
+                    H_ideal_holder=H, image=image)

@@ -165,6 +165,8 @@ class Features:
     lines_visible : (N,) bool, the lines that were seen (``lines_ideal`` NaN for the others).
     H_ideal_holder : (3, 3) homography holder plane (mm) -> ideal px of the outline fit (field
         chain), else None.
+    image : the grey image the features come from (a reference, not a copy): ``dm+b`` samples
+        the band across the edges in it.
     """
 
     corners_px: np.ndarray
@@ -188,6 +190,7 @@ class Features:
     order: str = "contour"
     lines_visible: np.ndarray | None = None
     H_ideal_holder: np.ndarray | None = None
+    image: np.ndarray | None = field(default=None, repr=False)
 
     def __post_init__(self):
         if self.visible is None:

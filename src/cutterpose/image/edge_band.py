@@ -1,0 +1,416 @@
+"""The band of a broken pocket edge, measured across the edge (issue 10: "measure the break").
+
+A rounded or chamfered edge of size ``r`` images as a band between two geometric junctions: where
+the break meets the wall (depth ``r`` below the face) and where it meets the face (``r`` out from
+the design edge). From the corners alone only the band's innermost rise is seen, and that is the
+design polygon moved in depth by ``r`` (docs/notes/edge_model.md, section 3): ``r`` and ``Z``
+cannot be told apart. The profile *across* the band holds both junctions, about ``a_s r`` px
+apart (4 px per mm at 600 mm), so fitting the edge model's profile
+(:func:`cutterpose.image.edge_model.profiles`) to the measured profile gives, per piece of edge,
+the radius and where the *design* edge lies in the image. :mod:`cutterpose.solvers.edge_band`
+then fits the pose to those design-edge points.
+
+The fit per segment (a third to a half of one edge, ``n_seg`` per edge):
+
+* the measured profile ``y(w)`` is the median, over ``positions`` normals spread along the
+  segment, of the image sampled (bilinear) every ``step_px`` along the predicted edge's outward
+  normal; normals whose profile departs from the median (slurry, a chip, the cutter's
+  silhouette) are dropped before a second median;
+* the model ``m(w; r, look)`` is the edge model's blurred profile (its design edge at ``w = 0``)
+  for a shape (fillet or 45 deg chamfer) and a photometric variant (``LOOK_VARIANTS``);
+* ``y(w) ~ a + b m(w - shift)``, ``b > 0``: the grey offset and gain are solved in closed form,
+  ``(r, shift)`` on a grid (coarse over the whole range, then fine round the best), the look is
+  shared by every segment of the image (one material, one light) and chosen by the trimmed sum
+  of the segments' costs.
+
+The result per segment: the design edge's point ``q + shift n`` (ideal px), the radius, the
+residual RMS, the gain (contrast), and the same for the other plausible looks (their spread is
+the edge model's share of the error budget).
+
+Convention:
+    Holder frame and pose of :mod:`cutterpose.geometry.pose` (``x_cam = R x_holder + t``, mm);
+    ``*_ideal_px`` ideal (undistorted) pixels of ``camera.K``; ``w`` and ``shift`` in px along
+    the edge's outward image normal (away from the pocket); radii in mm. Segments are ordered
+    edge by edge (holder order), ``n_seg`` per edge.
+
+References:
+    Seed paper, section 2.1; the same group's follow-up (Sensors 2023, 23(3), 1536) on the
+    rounded-edge profile under strong and weak light; :mod:`cutterpose.image.edge_model` for the
+    radiometry.
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass, field, replace
+
+import cv2
+import numpy as np
+
+from ..errors import InputError
+from ..geometry.camera import Camera
+from ..geometry.holder import Holder
+from . import edge_model as em
+
+__all__ = ["BandProfiles", "BandFit", "sample_band", "fit_band", "band_looks"]
+
+#: the radii the coarse scan tries (mm) and the fine step
+COARSE_RADII_MM = np.array([0.0, 0.25, 0.5, 0.75, 1.0, 1.25, 1.5, 2.0, 2.5, 3.0, 3.5, 4.0, 4.5,
+                            5.0, 5.75, 6.5])
+#: the fine scan's radius step: 0.05 mm up to 2 mm (where the coarse grid is 0.25 mm), 0.1 mm
+#: beyond (coarse 0.5 mm); 13 radii round the coarse best
+FINE_STEP_MM = 0.05
+#: the coarse shift scan: +- this many px (the start may be a few mm off in depth) in steps of
+COARSE_SHIFT_PX = 6.0
+COARSE_SHIFT_STEP_PX = 0.4
+#: fine scan: +- 0.6 px in STEP_PX round the coarse best, then a parabola
+FINE_SHIFT_STEPS = 3
+#: the profile step (px): samples and model grid alike, so that a shift is an index offset
+STEP_PX = 0.2
+#: lens blurs tried for the chosen variant (px, Gaussian std)
+BLURS_PX = (0.6, 0.9, 1.2)
+#: a look is plausible (its poses enter the budget's model spread) when the best total cost is
+#: at least this fraction of its own (the same margin as dm+r's shape choice)
+PLAUSIBLE = 0.7
+#: at most this many plausible looks (the most likely) are kept
+MAX_PLAUSIBLE = 3
+
+
+def band_looks(shapes=("round", "chamfer")) -> list[em.EdgeLook]:
+    """The photometric candidates: every shape x ``LOOK_VARIANTS`` at 0.9 px blur (the sampling
+    is direct: no profile smoothing)."""
+    out = []
+    for s in shapes:
+        for lk in em.LOOK_VARIANTS:
+            lk = replace(lk, shape=s, blur_sigma_px=0.9, profile_sigma_px=0.0,
+                         ring_radius_mm=0.0)
+            if lk not in out:       # the blur variant is the nominal look here
+                out.append(lk)
+    return out
+
+
+@dataclass
+class BandProfiles:
+    """Profiles across the edges (module doc).
+
+    Attributes
+    ----------
+    w_px : (G,) sample offsets along the outward normal (px; 0 = the predicted design edge).
+    values : (S, G) robust profile of each segment (grey levels), NaN where not sampled.
+    edge, frac : (S,) the segment's edge (holder order) and centre as a fraction of the edge.
+    points_ideal_px : (S, 2) predicted design-edge point at the segment centre.
+    normals_ideal : (S, 2) unit outward image normal there.
+    points_holder_mm : (S, 3) the same point on the holder (``Z = 0``).
+    used : (S,) normals kept for the median; valid : (S,) enough of them.
+    px_per_mm : (S,) image displacement (px) of 1 mm outwards in the face plane (``a_s``).
+    """
+
+    w_px: np.ndarray
+    values: np.ndarray
+    edge: np.ndarray
+    frac: np.ndarray
+    points_ideal_px: np.ndarray
+    normals_ideal: np.ndarray
+    points_holder_mm: np.ndarray
+    used: np.ndarray
+    valid: np.ndarray
+    px_per_mm: np.ndarray
+
+
+def _project(R, t, K, P):
+    X = P @ R.T + t
+    return (X[..., :2] / X[..., 2:]) @ K[:2, :2].T + K[:2, 2]
+
+
+def sample_band(image: np.ndarray, camera: Camera, holder: Holder, R_cam_holder,
+                t_cam_holder_mm, edges_seen=None, n_seg: int = 2, positions: int = 20,
+                step_px: float = STEP_PX, inner_px: float = 10.0, r_max_mm: float = 6.5,
+                trim: float = 0.12) -> BandProfiles:
+    """Sample every edge's band at the pose ``(R, t)`` (module doc).
+
+    Parameters
+    ----------
+    image : (H, W) grey image (uint8 or float), observed pixels.
+    edges_seen : (N,) bool, edges to sample (default all).
+    trim : fraction of each edge left out at either end (the corners' neighbourhood).
+    """
+    img = np.asarray(image)
+    if img.ndim != 2:
+        raise InputError("sample_band needs a grey image")
+    img = img.astype(np.float32, copy=False)
+    R = np.asarray(R_cam_holder, float)
+    t = np.asarray(t_cam_holder_mm, float).reshape(3)
+    K = camera.K
+    c = np.asarray(holder.corners_mm, float)
+    n = len(c)
+    seen = np.ones(n, bool) if edges_seen is None else np.asarray(edges_seen, bool)
+    nxt = np.roll(c, -1, axis=0)
+    d = (nxt - c) / np.linalg.norm(nxt - c, axis=1, keepdims=True)
+    o = np.column_stack([d[:, 1], -d[:, 0]])
+    span = (1 - 2 * trim) / n_seg
+    seg_edge = np.repeat(np.arange(n), n_seg)
+    j = np.tile(np.arange(n_seg), n)
+    lo = trim + j * span
+    frac_c = lo + 0.5 * span
+    f = lo[:, None] + span * (np.arange(positions) + 0.5)[None, :] / positions   # (S, P)
+    P2 = c[seg_edge][:, None, :] + f[..., None] * (nxt - c)[seg_edge][:, None, :]
+    P3 = np.concatenate([P2, np.zeros(P2.shape[:2] + (1,))], axis=-1)
+    q = _project(R, t, K, P3)                                                  # (S, P, 2)
+    Po = P3.copy()
+    Po[..., :2] += o[seg_edge][:, None, :]
+    qo = _project(R, t, K, Po)
+    tang = _project(R, t, K, P3 + np.concatenate([d[seg_edge], np.zeros((len(seg_edge), 1))],
+                                                 axis=1)[:, None, :]) - q
+    nrm = np.stack([-tang[..., 1], tang[..., 0]], axis=-1)
+    nrm /= np.linalg.norm(nrm, axis=-1, keepdims=True)
+    nrm *= np.sign(np.sum(nrm * (qo - q), axis=-1))[..., None]
+    a_s_seg = np.linalg.norm(qo - q, axis=-1).mean(axis=1)
+    w = np.arange(-inner_px, a_s_seg.max() * r_max_mm + 8.0 + step_px / 2, step_px)
+    pts = q[:, :, None, :] + w[None, None, :, None] * nrm[:, :, None, :]      # (S, P, G, 2)
+    obs = camera.distort_px(pts.reshape(-1, 2)).reshape(pts.shape).astype(np.float32)
+    vals = cv2.remap(img, obs[..., 0].reshape(-1, len(w)), obs[..., 1].reshape(-1, len(w)),
+                     cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=np.nan)
+    vals = vals.reshape(pts.shape[:3])
+    vals[~seen[seg_edge]] = np.nan
+    # edges not seen are all NaN: their medians are NaN (and marked invalid below)
+    with np.errstate(invalid="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        med = np.nanmedian(vals, axis=1)
+        dev = np.sqrt(np.nanmean((vals - med[:, None, :]) ** 2, axis=2))     # (S, P)
+        ref = np.nanmedian(dev, axis=1, keepdims=True)
+        keep = np.isfinite(dev) & (dev <= 3.0 * np.maximum(ref, 1.0))
+        kept = np.where(keep[..., None], vals, np.nan)
+        prof = np.nanmedian(kept, axis=1)
+    used = keep.sum(axis=1)
+    valid = seen[seg_edge] & (used >= max(4, positions // 3)) & np.isfinite(prof).all(axis=1)
+    return BandProfiles(w, prof, seg_edge, frac_c, q.mean(axis=1), nrm.mean(axis=1),
+                        np.concatenate([P2.mean(axis=1), np.zeros((len(j), 1))], axis=1),
+                        used, valid, a_s_seg)
+
+
+@dataclass
+class LookFit:
+    """One look's fit of every segment: radius (mm), shift (px), cost (grey^2), gain, RMS."""
+
+    look: em.EdgeLook
+    radius_mm: np.ndarray
+    shift_px: np.ndarray
+    cost: np.ndarray
+    gain: np.ndarray
+    rms: np.ndarray
+    total: float = np.inf
+    #: (S,) variance of the shift (px^2) with the radius free (fine scan; inf: no information)
+    shift_var_px2: np.ndarray | None = None
+
+
+@dataclass
+class BandFit:
+    """The chosen look's fit and the other plausible looks' (module doc)."""
+
+    best: LookFit
+    plausible: list = field(default_factory=list)
+    profiles: BandProfiles | None = None
+
+    def design_points_px(self, lf: LookFit | None = None) -> np.ndarray:
+        lf = lf or self.best
+        p = self.profiles
+        return p.points_ideal_px + lf.shift_px[:, None] * p.normals_ideal
+
+
+def _segment_models(view: em.EdgeView, look: em.EdgeLook, radii, bp: BandProfiles,
+                    half_width_px: float):
+    """(S, M, G0) model profiles of the segments (interpolated between the edge's two ends) on
+    the model grid, and the grid."""
+    w0, _, bl = em.profiles(radii, view, look, half_width_px=half_width_px, step_px=STEP_PX)
+    k = bp.edge
+    n = bl.shape[0]
+    a = bl[k, 1]                      # the edge's first end: corner k, side 1
+    b = bl[(k + 1) % n, 0]            # its last: corner k + 1, side 0
+    f = bp.frac[:, None, None]
+    return w0, (1 - f) * a + f * b
+
+
+def _scan(Y, models, m0, w_idx, shifts_idx):
+    """Cost of ``Y ~ a + b model(w - shift)`` for every segment, radius and shift.
+
+    Y : (S, G) measured; models : (S, M, G0); w_idx : (G,) sample offsets in model steps;
+    shifts_idx : (S, H) or (H,) shifts in model steps. Returns cost, gain (S, M, H)."""
+    sh = np.asarray(shifts_idx)
+    if sh.ndim == 1:
+        sh = np.broadcast_to(sh, (Y.shape[0], len(sh)))
+    idx = np.clip(m0 + w_idx[None, None, :] - sh[:, :, None], 0, models.shape[-1] - 1)
+    S = np.arange(Y.shape[0])[:, None, None, None]
+    M = np.arange(models.shape[1])[None, :, None, None]
+    Mi = models.astype(np.float32)[S, M, idx[:, None, :, :]]              # (S, M, H, G)
+    Mc = Mi - Mi.mean(axis=-1, keepdims=True)
+    Yc = (Y - Y.mean(axis=-1, keepdims=True)).astype(np.float32)[:, None, None, :]
+    num = np.einsum("smhg,smhg->smh", Mc, np.broadcast_to(Yc, Mc.shape))
+    den = np.einsum("smhg,smhg->smh", Mc, Mc)
+    gain = num / np.maximum(den, 1e-12)
+    cost = np.sum(Yc ** 2, axis=-1) - gain * num
+    return np.where(gain > 0, cost, np.inf), gain
+
+
+def _fit_look(bp: BandProfiles, view: em.EdgeView, look: em.EdgeLook, hw: float,
+              coarse: LookFit | None = None, shift_range_px: float = COARSE_SHIFT_PX
+              ) -> LookFit:
+    """Coarse scan (or, given ``coarse``, the fine scan round it) of one look."""
+    h = STEP_PX
+    S = len(bp.edge)
+    Y = np.where(bp.valid[:, None], bp.values, 0.0)
+    if coarse is None:
+        radii = COARSE_RADII_MM
+        w0, models = _segment_models(view, look, radii, bp, hw)
+        m0 = int(round(-w0[0] / h))
+        # every second sample: the coarse scan needs no more
+        keep = slice(0, None, 2)
+        w_idx = np.rint(bp.w_px[keep] / h).astype(int)
+        st = int(round(COARSE_SHIFT_STEP_PX / h))
+        k = int(round(shift_range_px / COARSE_SHIFT_STEP_PX))
+        shifts = st * np.arange(-k, k + 1)
+        cost, gain = _scan(Y[:, keep], models, m0, w_idx, shifts)
+        flat = cost.reshape(S, -1)
+        jb = np.argmin(flat, axis=1)
+        mi, hi = np.unravel_index(jb, cost.shape[1:])
+        r = radii[mi]
+        s = shifts[hi] * h
+        c = flat[np.arange(S), jb] * (len(bp.w_px) / len(w_idx))
+        g = gain.reshape(S, -1)[np.arange(S), jb]
+        var = np.full(S, np.nan)
+    else:
+        # per-end radius windows round the coarse radius (both segments of an edge share ends)
+        nr = 13
+        step = np.where(coarse.radius_mm < 2.0, FINE_STEP_MM, 2 * FINE_STEP_MM)[:, None]
+        base = np.clip(coarse.radius_mm[:, None] - step * (nr // 2), 0, None)
+        rad_seg = base + step * np.arange(nr)[None, :]                         # (S, nr)
+        n = view.a_s.shape[0]
+        # segment models need per-segment radii: evaluate per end with the edge's windows,
+        # segment by segment (n_seg segments share an edge's ends)
+        per_end = np.zeros((n, 2, nr))
+        S_per_edge = S // n
+        models = None
+        w_idx = np.rint(bp.w_px / h).astype(int)
+        cost_all = np.full((S, nr, 2 * FINE_SHIFT_STEPS + 1), np.inf)
+        gain_all = np.zeros_like(cost_all)
+        for jseg in range(S_per_edge):
+            sel = np.arange(jseg, S, S_per_edge)                             # one per edge
+            per_end[:, 1] = rad_seg[sel]
+            per_end[:, 0] = np.roll(rad_seg[sel], 1, axis=0)                 # edge k-1's end
+            w0, bl = em.profiles(per_end, view, look, half_width_px=hw, step_px=STEP_PX)[::2]
+            k = bp.edge[sel]
+            f = bp.frac[sel][:, None, None]
+            models = (1 - f) * bl[k, 1] + f * bl[(k + 1) % n, 0]
+            m0 = int(round(-w0[0] / h))
+            centre = np.rint(coarse.shift_px[sel] / h).astype(int)
+            shifts = centre[:, None] + np.arange(-FINE_SHIFT_STEPS, FINE_SHIFT_STEPS + 1)
+            cost, gain = _scan(Y[sel], models, m0, w_idx, shifts)
+            cost_all[sel], gain_all[sel] = cost, gain
+        flat = cost_all.reshape(S, -1)
+        jb = np.argmin(flat, axis=1)
+        mi, hi = np.unravel_index(jb, cost_all.shape[1:])
+        r = rad_seg[np.arange(S), mi]
+        centre = np.rint(coarse.shift_px / h).astype(int)
+        s = (centre + hi - FINE_SHIFT_STEPS) * h
+        # parabola through the shift neighbours at the best radius
+        cm = cost_all[np.arange(S), mi]
+        inner = (hi > 0) & (hi < cm.shape[1] - 1)
+        i0 = np.clip(hi, 1, cm.shape[1] - 2)
+        c_l, c_0, c_r = (cm[np.arange(S), i0 - 1], cm[np.arange(S), i0],
+                         cm[np.arange(S), i0 + 1])
+        with np.errstate(invalid="ignore", divide="ignore"):
+            den = c_l - 2 * c_0 + c_r
+            dx = np.where(inner & np.isfinite(den) & (den > 0), 0.5 * (c_l - c_r) / den, 0.0)
+        s = s + np.clip(dx, -0.5, 0.5) * h
+        c = flat[np.arange(S), jb]
+        g = gain_all.reshape(S, -1)[np.arange(S), jb]
+        var = _shift_variance(cost_all, mi, hi, step[:, 0], h, rad_seg[:, 0] == 0,
+                              len(bp.w_px))
+    G = len(bp.w_px)
+    c = np.where(bp.valid, c, np.inf)
+    rms = np.sqrt(c / G)
+    var = np.where(bp.valid, var, np.inf)
+    return LookFit(look, r, s, c, g, rms, _trimmed_total(c, bp.valid), var)
+
+
+def _shift_variance(cost, mi, hi, dr, ds, r_at_zero, n_samples) -> np.ndarray:
+    """(S,) variance (px^2) of each segment's design-edge shift with its radius free.
+
+    The cost ``C(r, shift)`` (sum of squared residuals) round its grid minimum is taken as a
+    quadratic, Hessian ``H`` by central differences; with Gaussian residuals of variance
+    ``s^2 = C_min / (G - 4)`` the Fisher information is ``H / (2 s^2)``, so
+    ``var(shift) = 2 s^2 [H^-1]_ss`` (the radius marginalised). A radius pinned at 0 (a sharp
+    edge, the grid's end) is held: ``2 s^2 / H_ss``. A minimum on the window's edge, or a cost
+    that does not curve upwards, gives no information: ``inf``."""
+    S, nr, nh = cost.shape
+    ar = np.arange(S)
+    m1, mp = np.clip(mi - 1, 0, nr - 1), np.clip(mi + 1, 0, nr - 1)
+    h1, hp = np.clip(hi - 1, 0, nh - 1), np.clip(hi + 1, 0, nh - 1)
+    c0 = cost[ar, mi, hi]
+    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+        s2 = c0 / max(n_samples - 4, 1)
+        css = (cost[ar, mi, hp] - 2 * c0 + cost[ar, mi, h1]) / ds ** 2
+        crr = (cost[ar, mp, hi] - 2 * c0 + cost[ar, m1, hi]) / dr ** 2
+        crs = (cost[ar, mp, hp] - cost[ar, mp, h1] - cost[ar, m1, hp]
+               + cost[ar, m1, h1]) / (4 * dr * ds)
+        det = crr * css - crs ** 2
+        free = np.where((det > 0) & (crr > 0), 2 * s2 * crr / det, np.inf)
+        held = np.where(css > 0, 2 * s2 / css, np.inf)
+    at_zero = r_at_zero & (mi == 0)
+    var = np.where(at_zero, held, free)
+    edge = (hi == 0) | (hi == nh - 1) | (~at_zero & ((mi == 0) | (mi == nr - 1)))
+    return np.where(edge | ~np.isfinite(var), np.inf, var)
+
+
+def _trimmed_total(cost, valid) -> float:
+    c = np.sort(cost[valid & np.isfinite(cost)])
+    if len(c) == 0:
+        return np.inf
+    return float(c[: max(1, int(np.ceil(0.75 * len(c))))].sum())
+
+
+def fit_band(bp: BandProfiles, camera: Camera, holder: Holder, R_cam_holder, t_cam_holder_mm,
+             shapes=("round", "chamfer"), previous: BandFit | None = None,
+             fine_plausible: bool = True) -> BandFit:
+    """Fit the edge model to every segment's profile (module doc).
+
+    ``previous``: a fit at a nearby pose whose looks (chosen and plausible) are fitted again,
+    with no look scan. ``fine_plausible=False`` leaves the plausible looks at their coarse
+    fit (a first pass that only needs to know which they are).
+
+    Returns
+    -------
+    BandFit : ``best`` the chosen look (its blur fitted), ``plausible`` the other looks whose
+        trimmed cost is within :data:`PLAUSIBLE` of the best (fine-fitted too).
+    """
+    if not bp.valid.any():
+        raise InputError("fit_band: no segment of any edge was sampled")
+    looks = band_looks(shapes)
+    hw = float(-bp.w_px[0] if -bp.w_px[0] > bp.w_px[-1] else bp.w_px[-1]) + 12.0
+    view = em.edge_views(R_cam_holder, t_cam_holder_mm, camera.K, holder)
+    if previous is not None:
+        # a second pass at a pose that moved little: the looks chosen before, scanned anew
+        # (coarse, then fine) only for the chosen and the plausible ones
+        out = []
+        for lf in [previous.best] + previous.plausible:
+            c = _fit_look(bp, view, lf.look, hw, shift_range_px=2.0)
+            out.append(_fit_look(bp, view, lf.look, hw, c))
+        return BandFit(out[0], out[1:], bp)
+    coarse = [_fit_look(bp, view, lk, hw) for lk in looks]
+    totals = np.array([lf.total for lf in coarse])
+    order = np.argsort(totals)
+    best_i = int(order[0])
+    # the chosen variant at each blur, then the plausible others at their coarse blur
+    fine = []
+    for b in BLURS_PX:
+        lk = replace(looks[best_i], blur_sigma_px=b)
+        fine.append(_fit_look(bp, view, lk, hw, coarse[best_i]))
+    best = min(fine, key=lambda lf: lf.total)
+    plausible = []
+    for i in order[1:]:
+        if (not np.isfinite(totals[i]) or totals[best_i] < PLAUSIBLE * totals[i]
+                or len(plausible) == MAX_PLAUSIBLE):
+            continue
+        lk = replace(looks[i], blur_sigma_px=best.look.blur_sigma_px)
+        plausible.append(_fit_look(bp, view, lk, hw, coarse[i]) if fine_plausible
+                         else replace(coarse[i], look=lk))
+    return BandFit(best, plausible, bp)

@@ -1,0 +1,239 @@
+"""``dm+b``: the pose of the design edge from the measured band of the broken edge (issue 10).
+
+``dm+`` gives a start (the corners of the innermost rise: biased by the edge break); the band
+across every edge segment is then fitted with the edge model
+(:mod:`cutterpose.image.edge_band`), which puts a point on the *design* edge's image (the sharp
+intersection of face and wall) per segment, and the pose minimises
+
+    sum_s rho( n_s . (pi(R X_s + t) - p_s) )
+
+over the six DOFs: ``X_s`` the segment's centre on the design edge (holder frame, ``Z = 0``),
+``p_s`` its measured image (ideal px), ``n_s`` the edge's outward image normal, ``rho`` the
+soft-L1 loss (a segment under slurry or on a chip is an outlier), scaled by the residuals' MAD.
+Two passes: the first on half the segments chooses the look (shape, photometry, blur) and
+brings the pose to within a fraction of a millimetre; the second samples again at that pose
+(the sampling lines follow it) on all segments with the chosen and plausible looks.
+
+The error budget (:mod:`cutterpose.budget`) gets three parts:
+
+* ``noise``: ``s^2 (J^T W J)^-1`` with ``s^2`` the weighted residual variance (it contains the
+  per-segment variation of the break, which the model does not know);
+* ``edge model``: the poses of the other plausible looks (shape and photometry the profile fit
+  cannot rule out), mean of their outer products about the chosen pose;
+* ``model floor``: the pose change for a uniform outward shift of every design point by
+  :data:`SHIFT_FLOOR_MM` (the profile model's systematic error that no alternative look
+  shows: a uniform shift is what the pose cannot tell from depth).
+
+Convention:
+    Pose DOFs of :mod:`cutterpose.geometry.pose` (alpha, beta, gamma [deg], X, Y, Z [mm],
+    ``x_cam = R x_holder + t``); pixels ideal (undistorted) of ``camera.K``.
+
+References:
+    Seed paper, sections 2.1-2.3; Triggs et al., "Bundle adjustment - a modern synthesis"
+    (2000), section 6 (robust point-to-line costs); Huber (1964).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import least_squares
+
+from ..errors import CutterposeError, InputError
+from ..geometry.camera import Camera
+from ..geometry.holder import Holder
+from ..geometry.pose import Pose, rotation_from_euler_deg
+from ..image.edge_band import BandFit, fit_band, sample_band
+from .estimate import PoseEstimate
+
+__all__ = ["BandPose", "fit_pose_design_points", "measure_band", "solve", "SHIFT_FLOOR_MM"]
+
+#: the band model's systematic uncertainty as a uniform outward shift of the design edge (mm
+#: in the face plane, 1 sigma): on the development pbr sets at ~4 px/mm the design edge of
+#: round fillets came out 0.2 px (0.05 mm) outside on average (Blinn-Phong against the
+#: renderer's microfacet steel), of chamfers 0.05 px, of worn fillets 0.15 px inside
+SHIFT_FLOOR_MM = 0.04
+#: the soft-L1 scale of the whitened residuals (a segment beyond ~2 sigma is down-weighted)
+ROBUST_SCALE = 2.0
+#: the least std (px) a segment's design-edge point is given (the variance from the profile
+#: fit knows the noise, not the model's local error)
+MIN_SD_PX = 0.1
+#: segments per edge and normals per segment sampled across the band
+SEGMENTS_PER_EDGE = 4
+POSITIONS_PER_SEGMENT = 12
+#: fewest valid segments for a pose (of 20 x SEGMENTS_PER_EDGE: 30 %)
+MIN_SEGMENT_FRACTION = 0.3
+
+
+@dataclass
+class BandPose:
+    """What :func:`measure_band` found (for the budget, the JSON and the overlay)."""
+
+    dof: np.ndarray
+    cov_parts: dict
+    fit: BandFit
+    residuals_px: np.ndarray      # (S,) along the normals, NaN for invalid segments
+    weights: np.ndarray           # (S,) robust weights (0: not used)
+    chi: float                    # root of the weighted chi-square per degree of freedom
+    passes: int
+
+    @property
+    def radius_mm(self) -> float:
+        v = self.fit.profiles.valid
+        return float(np.median(self.fit.best.radius_mm[v])) if v.any() else math.nan
+
+    def to_dict(self) -> dict:
+        b = self.fit.best
+        v = self.fit.profiles.valid
+        return {"shape": b.look.shape, "blur_px": b.look.blur_sigma_px,
+                "radius_median_mm": round(self.radius_mm, 3),
+                "radius_per_segment_mm": [None if not ok else round(float(r), 3)
+                                          for r, ok in zip(b.radius_mm, v)],
+                "segments_used": int(np.count_nonzero(self.weights > 0.5)),
+                "segments_valid": int(v.sum()), "residual_chi": round(self.chi, 3),
+                "plausible_looks": len(self.fit.plausible), "passes": self.passes}
+
+
+def _residuals(dof, X, p, n, K):
+    R = rotation_from_euler_deg(*dof[:3])
+    Xc = X @ R.T + dof[3:]
+    q = (Xc[:, :2] / Xc[:, 2:]) @ K[:2, :2].T + K[:2, 2]
+    return np.sum((q - p) * n, axis=1)
+
+
+def fit_pose_design_points(points_ideal_px, normals, points_holder_mm, K, dof0,
+                           sd_px=None, f_scale: float = ROBUST_SCALE):
+    """Robust point-to-line pose (module doc).
+
+    Parameters
+    ----------
+    sd_px : (S,) each point's std along its normal (px; default 1 for all): the residuals are
+        whitened by it, and ``f_scale`` (soft-L1) is in those units.
+
+    Returns
+    -------
+    dof, info, residuals_px, weights, chi : ``info = J^T W J`` of the whitened residuals
+        (1 / unit^2), ``chi`` the root of the weighted chi-square per degree of freedom.
+    """
+    p = np.asarray(points_ideal_px, float)
+    n = np.asarray(normals, float)
+    X = np.asarray(points_holder_mm, float)
+    if len(p) < 6:
+        raise InputError(f"fit_pose_design_points: {len(p)} points, at least 6 needed")
+    sd = np.ones(len(p)) if sd_px is None else np.asarray(sd_px, float)
+    dof0 = np.asarray(dof0, float)
+
+    def fun(x):
+        return _residuals(x, X, p, n, K) / sd
+
+    sol = least_squares(fun, dof0, loss="soft_l1", f_scale=f_scale,
+                        x_scale=np.array([0.01, 0.01, 0.01, 0.1, 0.1, 0.5]), method="trf")
+    z = sol.fun
+    w = 1.0 / np.sqrt(1.0 + (z / f_scale) ** 2)
+    J = sol.jac
+    info = J.T @ (w[:, None] * J)
+    dof_n = max(int(np.count_nonzero(w > 0.5)) - 6, 1)
+    chi = math.sqrt(float(np.sum(w * z ** 2) / dof_n))
+    return sol.x, info, z * sd, w, chi
+
+
+def _sd(lf) -> np.ndarray:
+    return np.maximum(np.sqrt(lf.shift_var_px2), MIN_SD_PX)
+
+
+def _pose_of(fit: BandFit, lf, X, n_img, K, dof0, valid):
+    v = valid & np.isfinite(lf.shift_var_px2)
+    if v.sum() < 6:
+        return np.full(6, np.inf)
+    p = fit.design_points_px(lf)[v]
+    return fit_pose_design_points(p, n_img[v], X[v], K, dof0, _sd(lf)[v])[0]
+
+
+def _look_spread(fit: BandFit, X, n_img, K, dof, valid) -> np.ndarray:
+    """(6, 6) second moment of the plausible looks' poses about the chosen one, each weighted
+    by its relative likelihood with the segments as independent observations of the look:
+    ``w_l = (C_best / C_l)^(n / 2)``, ``n`` the segments in the trimmed cost (a BIC-style
+    model average; the chosen look has ``w = 1`` and no deviation)."""
+    if not fit.plausible:
+        return np.zeros((6, 6))
+    n = max(1, int(np.ceil(0.75 * int(valid.sum()))))
+    d = np.array([_pose_of(fit, lf, X, n_img, K, dof, valid) - dof for lf in fit.plausible])
+    ratio = np.array([fit.best.total / lf.total for lf in fit.plausible])
+    w = np.exp(0.5 * n * np.log(np.clip(ratio, 1e-12, 1.0)))
+    return np.einsum("l,li,lj->ij", w, d, d) / (1.0 + w.sum())
+
+
+def measure_band(image, camera: Camera, holder: Holder, start: PoseEstimate,
+                 edges_seen=None, shapes=("round", "chamfer"), max_passes: int = 2
+                 ) -> PoseEstimate:
+    """``dm+b`` from a start pose (module doc). A falsy estimate with the reason when the band
+    cannot be measured."""
+    t0 = time.perf_counter()
+    if not start:
+        return PoseEstimate.failure("dm+b", f"start: {start.reason}")
+    dof = Pose(start.R_cam_holder, start.t_cam_holder_mm).dof
+    K = camera.K
+    passes = 0
+    fit = None
+    try:
+        for passes in range(1, max_passes + 1):
+            R = rotation_from_euler_deg(*dof[:3])
+            # the first pass (look choice, the pose to within a fraction of a millimetre) on
+            # half the segments; the last on all of them with the looks chosen
+            last = passes == max_passes
+            n_seg = SEGMENTS_PER_EDGE if last else max(1, SEGMENTS_PER_EDGE // 2)
+            bp = sample_band(image, camera, holder, R, dof[3:], edges_seen, n_seg=n_seg,
+                             positions=POSITIONS_PER_SEGMENT * SEGMENTS_PER_EDGE // n_seg)
+            valid = bp.valid.copy()
+            if valid.sum() < MIN_SEGMENT_FRACTION * len(valid):
+                return PoseEstimate.failure(
+                    "dm+b", f"the edge band was measured on {int(valid.sum())} of "
+                    f"{len(valid)} edge segments (< {100 * MIN_SEGMENT_FRACTION:.0f} %): "
+                    "edges hidden")
+            fit = fit_band(bp, camera, holder, R, dof[3:], shapes,
+                           previous=fit if passes > 1 else None, fine_plausible=last)
+            valid &= np.isfinite(fit.best.cost) & np.isfinite(fit.best.shift_var_px2)
+            if valid.sum() < MIN_SEGMENT_FRACTION * len(valid):
+                return PoseEstimate.failure(
+                    "dm+b", f"the band's profile fixes the design edge on {int(valid.sum())} "
+                    f"of {len(valid)} edge segments only: edges hidden or featureless")
+            p = fit.design_points_px()[valid]
+            sd = _sd(fit.best)[valid]
+            new, info, r, w, s = fit_pose_design_points(
+                p, bp.normals_ideal[valid], bp.points_holder_mm[valid], K, dof, sd)
+            dof = new
+    except CutterposeError as e:
+        return PoseEstimate.failure("dm+b", f"edge band: {e}")
+    try:
+        # the segments' variances know the pixel noise; a larger scatter scales them up
+        cov_noise = max(s, 1.0) ** 2 * np.linalg.inv(info)
+    except np.linalg.LinAlgError:
+        cov_noise = np.full((6, 6), np.inf)
+    X, n_img = bp.points_holder_mm, bp.normals_ideal
+    cov_model = _look_spread(fit, X, n_img, K, dof, valid)
+    # a uniform outward shift of the design edge by the model floor
+    floor_px = SHIFT_FLOOR_MM * bp.px_per_mm[valid]
+    p_shift = fit.design_points_px()[valid] + floor_px[:, None] * n_img[valid]
+    d_u = fit_pose_design_points(p_shift, n_img[valid], X[valid], K, dof, sd)[0] - dof
+    parts = {"noise": cov_noise, "edge model": cov_model, "model floor": np.outer(d_u, d_u)}
+    res = np.full(len(valid), np.nan)
+    res[valid] = r
+    wt = np.zeros(len(valid))
+    wt[valid] = w
+    band = BandPose(dof, parts, fit, res, wt, s, passes)
+    R = rotation_from_euler_deg(*dof[:3])
+    inl = w > 0.5
+    rms = float(np.sqrt(np.mean(r[inl] ** 2))) if inl.any() else math.nan
+    est = PoseEstimate("dm+b", R, dof[3:].copy(), residual_px=rms,
+                       time_ms=(time.perf_counter() - t0) * 1e3, info={"band": band})
+    return est
+
+
+def solve(points_px, camera: Camera, model: Holder) -> PoseEstimate:
+    """Registered ``dm+b`` on corners alone: the band needs the image, so this is a falsy
+    estimate that says so (use :func:`cutterpose.pipeline.measure`)."""
+    return PoseEstimate.failure("dm+b", "dm+b measures the band across the edges: it needs the "
+                                "image (cutterpose.pipeline.measure / `cutterpose measure`)")
