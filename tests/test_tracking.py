@@ -32,13 +32,17 @@ runner = CliRunner()
 N, DROP, JUMP = 12, 4, 8
 
 
+def _approach(d, cam, n, z_start_mm, preset, seed, drop, jump):
+    """An approach to 600 mm with one dropped frame and a 30 mm jump (X); (folder, truth)."""
+    render_sequence(d, n, z_start_mm, 600.0, cam, settings=preset, seed=seed, drop=(drop,),
+                    jump_at=jump, jump_mm=(30.0, 0.0, 0.0))
+    save_camera(cam, d / "cam.json")
+    return d, json.loads((d / "truth.json").read_text())
+
+
 @pytest.fixture(scope="module")
 def sequence(tmp_path_factory):
-    d = tmp_path_factory.mktemp("approach")
-    render_sequence(d, N, 720.0, 600.0, CAM, settings="easy", seed=1, drop=(DROP,),
-                    jump_at=JUMP, jump_mm=(30.0, 0.0, 0.0))
-    save_camera(CAM, d / "cam.json")
-    return d, json.loads((d / "truth.json").read_text())
+    return _approach(tmp_path_factory.mktemp("approach"), CAM, N, 720.0, "easy", 1, DROP, JUMP)
 
 
 def test_se3_exp_log_round_trip():
@@ -157,10 +161,8 @@ F_N, F_DROP, F_JUMP = 10, 4, 7
 
 @pytest.fixture(scope="module")
 def field_sequence(tmp_path_factory):
-    d = tmp_path_factory.mktemp("field_approach")
-    render_sequence(d, F_N, 660.0, 600.0, FIELD_CAM, settings="field", seed=4, drop=(F_DROP,),
-                    jump_at=F_JUMP, jump_mm=(30.0, 0.0, 0.0))
-    return d, json.loads((d / "truth.json").read_text())
+    return _approach(tmp_path_factory.mktemp("field_approach"), FIELD_CAM, F_N, 660.0, "field",
+                     4, F_DROP, F_JUMP)
 
 
 def test_tracker_on_a_field_sequence_tracks_within_the_band(field_sequence):
