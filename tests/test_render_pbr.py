@@ -165,3 +165,30 @@ def test_render_set_is_an_image_set(mi, tmp_path):
                          resume=True)
     b = json.loads((tmp_path / "again" / "truth.json").read_text())["images"]
     assert [e["params"] for e in b] == [e["params"] for e in entries]
+
+
+def test_pbr_approach_sequence_same_scene_fresh_noise(tmp_path, monkeypatch):
+    """render-sequence --engine pbr: the scene is drawn once from the seed (same holder in
+    every frame), the noise per frame; without Mitsuba, a typed error naming the extra."""
+    from cutterpose.render.sequence import render_sequence
+
+    monkeypatch.setenv("CUTTERPOSE_PBR_VARIANT", "scalar_rgb")
+    path = render_sequence(tmp_path / "seq", 3, 700.0, 600.0, small_camera(), seed=2,
+                           engine_name="pbr", spp=1)
+    doc = json.loads(path.read_text())
+    assert doc["sequence"]["engine"] == "pbr" and "new" in doc["presets"]
+    assert [e["frame"] for e in doc["images"]] == [0, 1, 2]
+    assert all(e["params"] == doc["images"][0]["params"] for e in doc["images"])
+    assert all(e["render"]["spp"] == 1 for e in doc["images"])
+    z = [e["t_cam_holder_mm"][2] for e in doc["images"]]
+    assert z == pytest.approx([700.0, 650.0, 600.0])
+    import cv2
+
+    imgs = [cv2.imread(str(tmp_path / "seq" / e["file"]), cv2.IMREAD_GRAYSCALE)
+            for e in doc["images"]]
+    assert all(im.shape == (301, 412) and im.std() > 5 for im in imgs)
+    with pytest.raises(pbr.InputError, match="pbr preset"):
+        render_sequence(tmp_path / "bad", 2, settings="field", engine_name="pbr")
+    monkeypatch.setitem(sys.modules, "mitsuba", None)
+    with pytest.raises(pbr.MitsubaMissingError, match=r"\[field\]"):
+        render_sequence(tmp_path / "none", 2, engine_name="pbr")

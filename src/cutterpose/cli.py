@@ -568,8 +568,11 @@ def render_sequence_cmd(
     frames: int = typer.Option(60, min=2, help="Number of frames of the approach."),
     z_start: float = typer.Option(900.0, help="Camera-holder distance at the first frame, mm."),
     z_end: float = typer.Option(600.0, help="Distance at the last frame, mm."),
-    preset: str = typer.Option("easy", help="Render preset (easy, dim, worn, ...)."),
-    engine: str = typer.Option("analytic", help="Render engine (analytic; pbr when wired)."),
+    preset: str = typer.Option(None, help="Render preset: analytic easy (default), dim, worn, "
+                               "field, new, rounded, ...; pbr sharp, new (default), worn."),
+    engine: str = typer.Option("analytic", help="analytic or pbr (Mitsuba 3 path tracing, "
+                               "extra [field]; one process)."),
+    spp: int = typer.Option(None, min=1, help="pbr: samples per pixel (preset: 12)."),
     seed: int = typer.Option(0, help="Seed of the surface and the noise."),
     camera: str = typer.Option(None, help="table1 (default), synthetic, or a camera file."),
     drop: str = typer.Option("", help="Comma-separated frame indices to drop."),
@@ -596,7 +599,7 @@ def render_sequence_cmd(
         path = render_sequence(out, frames, z_start, z_end, _render_camera(camera),
                                settings=preset, seed=seed, engine_name=engine, drop=dropped,
                                jump_at=jump_at, jump_mm=jump, workers=workers,
-                               scheduler=scheduler,
+                               scheduler=scheduler, spp=spp,
                                progress=lambda done, n: bar.update(task, completed=done))
     typer.echo(f"wrote {frames - len(dropped)} frames and {path}")
 

@@ -9,16 +9,26 @@ contour lies, and the region search, threshold and contour segmentation are skip
    in the camera frame at frame ``k``, the camera's motion over one frame is
    ``D = T_k T_{k-1}^{-1}`` (its body velocity, in the camera frame); the prediction is
    ``T_pred = D T_k``; without two consecutive tracked poses, ``T_pred = T_k``;
-2. **edges**: the 20 model edges projected with ``T_pred`` (ideal pixels) are the initial lines
-   of the sub-pixel gradient refinement :func:`cutterpose.image.edges.refine_lines` (profiles
-   across each line within +-``band_half_width_px``, each edge's band read from its own crop of
-   the frame); the corners are the intersections of consecutive lines, in model order;
-3. **pose**: Levenberg-Marquardt on the 20 corners' ideal-pixel reprojection error started at
-   ``T_pred`` (:func:`cutterpose.solvers.pnp.refine.refine_pose`), no coarse search; the std per
-   DOF is the Gauss-Newton covariance ``s^2 (J^T J)^-1`` of :mod:`cutterpose.pipeline`;
-4. **checks**: each edge must be found along at least ``min_support`` of its length, the corner
-   residuals must stay small (``max_rms_px``, ``max_corner_residual_px``). A frame that fails
-   them (a jump, an occluder, lost edges) falls back to the full measurement and says why.
+2. **edges**: the field chain's line step :func:`cutterpose.image.edges.robust_edge_lines` on
+   the 20 model edges projected with ``T_pred`` (grey-level profiles across each edge within
+   +-``band_half_width_px``, the *innermost* rise of a broken edge, LMedS + Tukey IRLS lines, an
+   edge *seen* when its inliers cover ``min_support`` of it and it lies within
+   ``shift_fraction`` of the band of its prediction): an edge under a slurry lump, behind the
+   cutter's silhouette or rounded beyond recognition is left out, not forced;
+3. **pose**: Gauss-Newton on the distances of the projected ends of every *seen* edge to its
+   line (ideal px), started at ``T_pred`` (Drummond & Cipolla 2002), no coarse search: a corner
+   whose other edge is hidden still counts through its seen one. A seen edge far off the
+   fitted model while the others fit (``line_outlier_*``) is left out and the pose fitted
+   again. The bands are re-centred on the fitted pose and the edges found again while they lay
+   off-centre (``centred_fraction``, up to ``max_passes``). The std per DOF is the
+   Gauss-Newton covariance ``s^2 (J^T J)^-1`` as in :mod:`cutterpose.pipeline`;
+4. **checks** (every tracked frame): at least ``min_lines`` edges seen (two per direction),
+   the edges centred in their bands on the last pass, the RMS and largest model-to-edge
+   distance below ``max_rms_px`` / ``max_corner_residual_px``, and the seen edges fixing
+   every DOF within ``max_std_ratio`` of the std all 20 would give (a family of short edges
+   lost far away leaves X or Z loose: that is not the full measurement's accuracy). A frame
+   that fails any of them (a jump, an occluder, lost edges) falls back to the full
+   measurement and says why.
 
 **Temporal filter** (optional, ``filter=True``): an alpha-beta filter, the steady-state Kalman
 filter of a constant-velocity model, on SE(3): state ``T`` and a per-frame twist ``xi``;
@@ -31,9 +41,9 @@ Convention:
     Poses ``T_cam_holder`` as in :mod:`cutterpose.geometry.pose` (``x_cam = R x_holder + t``,
     mm, deg). Twists ``xi = (omega [rad], rho [mm])`` with ``Exp(xi) = (Exp(omega),
     V(omega) rho)``. Pixels: ``*_px`` observed, ``*_ideal_px`` undistorted (ideal pinhole ``K``).
-    Line ``j`` of the model runs from corner ``j - 1`` to corner ``j`` (``holder.json`` order),
-    so that corner ``j`` is the intersection of lines ``j`` and ``j + 1`` as in
-    :func:`cutterpose.image.edges.intersect_consecutive`.
+    Edge ``k`` of the model runs from corner ``k`` to corner ``k + 1`` (``holder.json``
+    order) and corner ``i`` is the intersection of edges ``i - 1`` and ``i``, as in the field
+    chain (:func:`cutterpose.image.features.detect_features_field`).
 
 References:
     T. Drummond, R. Cipolla, "Real-time visual tracking of complex structures", PAMI 24(7),
@@ -50,7 +60,6 @@ import time
 from dataclasses import dataclass, field, replace
 
 import numpy as np
-from scipy.ndimage import gaussian_filter1d
 from scipy.spatial.transform import Rotation
 
 from .budget import Tolerance
@@ -60,9 +69,8 @@ from .geometry.camera import Camera, default_camera
 from .geometry.holder import Holder, default_holder
 from .geometry.pose import Pose, pixel_jacobian
 from .image import FeatureParams, as_grey_u8
-from .image.edges import _half_max_centroids, intersect_consecutive
+from .image.edges import intersect_consecutive, robust_edge_lines
 from .pipeline import DOF_NAMES, Measurement, QualityLimits, measure
-from .solvers.pnp.refine import refine_pose
 
 __all__ = ["TrackParams", "TrackResult", "Tracker", "PoseFilter", "approach_limits",
            "approach_params", "se3_exp", "se3_log"]
@@ -107,54 +115,6 @@ def _left(R: np.ndarray, t: np.ndarray, pose: Pose) -> Pose:
     return Pose(u @ vt, R @ pose.t_mm + t)
 
 
-def _bilinear(img: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """Bilinear grey levels of a uint8 image at observed pixels (replicated border)."""
-    h, w = img.shape
-    u = np.clip(u, 0.0, w - 1.000001)
-    v = np.clip(v, 0.0, h - 1.000001)
-    u0 = u.astype(np.intp)
-    v0 = v.astype(np.intp)
-    fu, fv = u - u0, v - v0
-    flat = img.reshape(-1)
-    i = v0 * w + u0
-    p00, p01 = flat[i].astype(np.float32), flat[i + 1].astype(np.float32)
-    p10, p11 = flat[i + w].astype(np.float32), flat[i + w + 1].astype(np.float32)
-    top = p00 + fu * (p01 - p00)
-    return top + fv * ((p10 + fu * (p11 - p10)) - top)
-
-
-def _fit_lines(pts: np.ndarray, ids: np.ndarray, n: int, iterations: int = 4) -> np.ndarray:
-    """Huber-weighted total least squares lines of labelled points, all lines at once.
-
-    The normal of a weighted TLS line is the minor axis of the points' weighted covariance:
-    the major axis lies at ``0.5 atan2(2 Sxy, Sxx - Syy)``. Weights: Huber with
-    ``k = 1.5 * 1.4826 * MAD`` of each line's residuals (as :mod:`cutterpose.image.edges`).
-    Lines without points are NaN.
-    """
-    x, y = pts[:, 0], pts[:, 1]
-    w = np.ones(len(pts))
-    bounds = np.searchsorted(ids, np.arange(n + 1))   # ids are sorted by line
-    for it in range(iterations + 1):
-        W = np.bincount(ids, w, n)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            cx = np.bincount(ids, w * x, n) / W
-            cy = np.bincount(ids, w * y, n) / W
-        dx, dy = x - cx[ids], y - cy[ids]
-        sxx = np.bincount(ids, w * dx * dx, n)
-        syy = np.bincount(ids, w * dy * dy, n)
-        sxy = np.bincount(ids, w * dx * dy, n)
-        th = 0.5 * np.arctan2(2 * sxy, sxx - syy)
-        nx, ny = -np.sin(th), np.cos(th)
-        if it == iterations:
-            break
-        r = np.abs(dx * nx[ids] + dy * ny[ids])
-        mad = np.array([np.median(r[bounds[j]:bounds[j + 1]]) if bounds[j + 1] > bounds[j]
-                        else 0.0 for j in range(n)])
-        k = 1.5 * (1.4826 * mad + 1e-6)
-        w = np.where(r <= k[ids], 1.0, k[ids] / np.maximum(r, 1e-12))
-    return np.column_stack([nx, ny, -(nx * cx + ny * cy)])
-
-
 # ------------------------------------------------------------------------------------------
 @dataclass(frozen=True)
 class TrackParams:
@@ -166,9 +126,27 @@ class TrackParams:
     profile_step_px: float = 3.0      #: spacing of the profiles along an edge
     passes: int = 1                   #: refinement passes (re-centred on the refined line)
     end_trim_px: float = 10.0         #: profiles kept this far from the predicted corners
-    min_support: float = 0.6          #: share of an edge's profiles that must find the edge
-    max_rms_px: float = 0.8           #: RMS corner residual after the pose fit (ideal px)
-    max_corner_residual_px: float = 2.5
+    min_support: float = 0.5          #: an edge is seen if its inliers cover this share
+    #: RMS model-to-edge distance after the fit (ideal px) and the largest one (at least
+    #: 2.5 RMS limits): a broken edge whose radius varies by +-0.5 mm along the contour
+    #: (preset ``new``) leaves ~0.4 px of RMS at 600-900 mm that the full measurement has as
+    #: well; a wrong edge leaves more. The RMS limit is at least ``rms_ref_factor`` times the
+    #: corner RMS of the last full measurement (the tracker's RMS is ~0.7 of it on the same
+    #: frames: analytic ``new`` 0.40 / 0.58 px, pbr ``new`` 0.55 / 0.76 px)
+    max_rms_px: float = 0.6
+    max_corner_residual_px: float = 1.5
+    rms_ref_factor: float = 1.0
+    min_lines: int = 10               #: edges seen (of 20; >= 2 per direction) for a pose
+    shift_fraction: float = 0.75      #: a seen edge lies within this share of the band
+    centred_fraction: float = 0.35    #: ... and, on the last pass, within this share
+    max_passes: int = 3               #: band passes, each centred on the previous pose
+    #: a seen edge whose ends lie farther than max(line_outlier_px, line_outlier_factor x the
+    #: median) from their line after the pose fit is left out (at most max_dropped_lines)
+    line_outlier_px: float = 0.25
+    line_outlier_factor: float = 4.0
+    max_dropped_lines: int = 3
+    #: the seen edges must fix every DOF within this factor of all 20 edges' std
+    max_std_ratio: float = 1.5
     filter_alpha: float = 0.5         #: alpha-beta filter gains (beta: Benedict-Bordner)
     filter_beta: float = 0.5 ** 2 / 1.5
     gate_mm: float = 5.0              #: filter reset when the innovation exceeds these
@@ -215,8 +193,10 @@ class TrackResult:
     fallback_reason : why tracking was not used on this frame ("" when tracked).
     filtered_pose : the temporal filter's pose (None without filter or pose); ``filter_reset``
         the reason it was reset on this frame ("" otherwise).
-    rms_px : RMS corner residual; ``edge_support`` the lowest share of an edge found.
-    corners_px : (20, 2) corners, model order (tracking) or contour order (full).
+    rms_px : RMS residual (tracking: model-to-edge distances; full: corners);
+        ``edge_support`` the lowest inlier share of a seen edge.
+    corners_px : (20, 2) corners, model order with NaN where an edge is not seen (tracking),
+        or those of the full measurement.
     measurement : the full measurement when one was made.
     timings_ms : wall time per stage.
     """
@@ -235,6 +215,9 @@ class TrackResult:
     measurement: Measurement | None = None
     timings_ms: dict = field(default_factory=dict)
     passes: int = 0   #: edge passes (tracking: 2 when the first found the edges off-centre)
+    lines_seen: int = 0    #: tracking: edges with enough inlier support (of 20)
+    corners_used: int = 0  #: tracking: corners whose two lines were seen
+    lines_dropped: int = 0  #: tracking: seen edges left out as off the fitted model
 
     def to_dict(self) -> dict:
         """One JSON object of ``cutterpose track --json-lines``."""
@@ -249,6 +232,8 @@ class TrackResult:
                 else self.filtered_pose.to_dict(),
                 "filter_reset": self.filter_reset, "rms_residual_px": f(self.rms_px),
                 "edge_support": f(self.edge_support), "passes": self.passes,
+                "lines_seen": self.lines_seen, "corners_used": self.corners_used,
+                "lines_dropped": self.lines_dropped,
                 "timings_ms": {k: round(float(v), 3) for k, v in self.timings_ms.items()}}
 
 
@@ -330,6 +315,7 @@ class Tracker:
             self.camera, refine_half_width_px=self.tp.band_half_width_px,
             refine_step_px=self.tp.profile_step_px, refine_passes=self.tp.passes,
             refine_trim_px=self.tp.end_trim_px)
+        self._line_cache: dict = {}
         self.filter = PoseFilter(self.tp.filter_alpha, self.tp.filter_beta, self.tp.gate_mm,
                                  self.tp.gate_deg) if filter else None
         self.reset()
@@ -338,6 +324,7 @@ class Tracker:
         """Forget the past: the next frame is measured in full."""
         self._last: Pose | None = None
         self._prev: Pose | None = None   # the pose before _last, when both were consecutive
+        self._rms_ref = 0.0   # corner RMS of the last accepted full measurement (px)
         self._n = 0
         if self.filter is not None:
             self.filter.reset()
@@ -372,6 +359,7 @@ class Tracker:
         self._prev = None   # the velocity is unknown after a fall-back
         if m.ok:
             self._last = m.pose
+            self._rms_ref = float(m.quality.rms_px) if np.isfinite(m.quality.rms_px) else 0.0
             res = TrackResult(k, "full", m.pose, m.std_dof, True, reason,
                               rms_px=m.quality.rms_px, corners_px=m.corners_px, measurement=m)
             self._filter(res, f"fall-back: {reason}" if k else "first pose")
@@ -398,22 +386,29 @@ class Tracker:
         R, t = _relative(self._last, self._prev)
         return _left(R, t, self._last)
 
-    def _model_lines(self, pose: Pose):
-        """The model's lines projected with ``pose`` (ideal px): start points, unit directions,
-        lengths, inward normals, corners; None if the holder is behind the camera."""
+    def _project(self, pose: Pose) -> np.ndarray | None:
+        """The model corners projected with ``pose`` (ideal px, holder order); None if the
+        holder is behind the camera."""
         X = pose.apply(self.holder.points_holder_mm)
         if np.any(X[:, 2] <= 0):
             return None
-        ideal = X[:, :2] / X[:, 2:3] @ self.K[:2, :2].T + self.K[:2, 2]
-        a = np.roll(ideal, 1, axis=0)                    # line j: corner j-1 -> corner j
-        d = ideal - a
-        length = np.linalg.norm(d, axis=1)
-        d = d / length[:, None]
-        x, y = ideal[:, 0], ideal[:, 1]
-        area = 0.5 * (x @ np.roll(y, -1) - np.roll(x, -1) @ y)
-        # the pocket lies left of each edge of a polygon with positive (shoelace) area
-        inward = np.sign(area) * np.column_stack([-d[:, 1], d[:, 0]])
-        return a, d, length, inward, ideal
+        return X[:, :2] / X[:, 2:3] @ self.K[:2, :2].T + self.K[:2, 2]
+
+    def _line_params(self, half_width_px: float, shift_px: float) -> FeatureParams:
+        """The field chain's line parameters for a band of +-``half_width_px`` about the
+        predicted edges; a seen line lies within ``shift_px`` of its prediction (plus the
+        field chain's outward allowance for a broken edge, capped by the band)."""
+        key = (half_width_px, shift_px)
+        p = self._line_cache.get(key)
+        if p is None:
+            out = min(self._refine_params.max_outward_shift_px,
+                      max(half_width_px - shift_px - 1.0, 0.0))
+            p = replace(self._refine_params, refine_half_width_px=half_width_px,
+                        max_line_shift_px=shift_px, max_outward_shift_px=out,
+                        min_line_support=self.tp.min_support,
+                        corner_trim_px=max(self.tp.end_trim_px, half_width_px + 4.0))
+            self._line_cache[key] = p
+        return p
 
     def _track(self, img: np.ndarray, k: int, timings: dict) -> TrackResult | str:
         t = time.perf_counter()
@@ -424,99 +419,184 @@ class Tracker:
             timings[name] = timings.get(name, 0.0) + (now - t) * 1e3
             t = now
 
-        P = self.holder.points_holder_mm
+        tp = self.tp
+        n = len(self.holder.points_holder_mm)
         pose = self.predict()
         # no velocity yet (second frame, after a fall-back): the frame's motion is not
         # predicted, a wider band covers it
-        hw = self.tp.band_half_width_px * (1.0 if self._prev is not None
-                                           else self.tp.cold_band_factor)
-        for attempt in range(2):
-            geo = self._model_lines(pose)
-            if geo is None:
+        hw = tp.band_half_width_px * (tp.cold_band_factor if self._prev is None else 1.0)
+        passes = dropped = 0
+        for _ in range(tp.max_passes):
+            passes += 1
+            corners_pred = self._project(pose)
+            if corners_pred is None:
                 return "the predicted holder is behind the camera"
-            a, d, length, inward, corners_pred = geo
-            if not np.all(self.camera.in_image(self.camera.distort_px(corners_pred), 2 * hw)):
+            pred_px = self.camera.distort_px(corners_pred)
+            if not np.all(self.camera.in_image(pred_px, 2 * hw)):
                 return "the predicted holder leaves the image"
+            # a crop round the predicted pocket (float32: sub-pixel grey-level profiles)
+            m = hw + 4.0
+            u0, v0 = np.maximum(np.floor(pred_px.min(axis=0) - m), 0).astype(int)
+            u1, v1 = np.ceil(pred_px.max(axis=0) + m + 1).astype(int)
+            sub = img[v0:v1, u0:u1].astype(np.float32)
             lap("predict")
-            lines, support = self._edges(img, a, d, length, inward, hw if attempt == 0
-                                         else self.tp.band_half_width_px)
+            # the field chain's lines: innermost rise, LMedS + Tukey, support and shift gates
+            lines, seen, _, support, _ = robust_edge_lines(
+                sub, np.array([u0, v0], float), self.camera, corners_pred,
+                self._line_params(hw, tp.shift_fraction * hw))
             lap("edges")
-            worst = int(np.argmin(support))
-            if support[worst] < self.tp.min_support:
-                return (f"edge {worst} found along {100 * support[worst]:.0f} % of its length "
-                        f"(< {100 * self.tp.min_support:.0f} %): jump, occlusion or lost edge")
-            corners_ideal = intersect_consecutive(lines)
-            if not np.all(np.isfinite(corners_ideal)):
-                return "consecutive tracked edges do not intersect"
-            R, tt, _ = refine_pose(pose.R, pose.t_mm, P, corners_ideal, self.K, max_nfev=20)
-            try:
-                pose = Pose(R, tt)
-            except InputError as e:
-                return f"the pose fit failed: {e}"
+            fam = np.bincount(np.arange(n)[seen] % 2, minlength=2)
+            if seen.sum() < tp.min_lines or fam.min() < 2:
+                worst = int(np.argmin(support))
+                return (f"only {int(seen.sum())} of {n} edges seen (< {tp.min_lines}, or < 2 "
+                        f"per direction; least-supported edge {worst}: "
+                        f"{100 * support[worst]:.0f} % of it): jump, occlusion or lost edges")
+            start = pose
+            for _ in range(tp.max_dropped_lines + 1):
+                fit = self._fit_lines_pose(start, lines, seen)
+                if isinstance(fit, str):
+                    return fit
+                pose, r, r_start, J, J2 = fit
+                # a line far off the rigid model while the others fit rests on something else
+                # (a lump's outline, the cutter, the wrong rise): leave it out and fit again
+                ks = np.nonzero(seen)[0]
+                misfit = np.maximum(np.abs(r[:len(ks)]), np.abs(r[len(ks):]))
+                worst = int(np.argmax(misfit))
+                bar = max(tp.line_outlier_px, tp.line_outlier_factor * float(np.median(misfit)))
+                if misfit[worst] <= bar or seen.sum() <= tp.min_lines:
+                    break
+                seen = seen.copy()
+                seen[ks[worst]] = False
+                lines = lines.copy()
+                lines[ks[worst]] = np.nan
+                dropped += 1
             lap("solve")
-            # edges found far from the band's centre were sampled off-centre: once more, with
-            # the bands centred on the fitted pose
-            moved = float(np.abs(corners_ideal - corners_pred).max())
-            if moved <= 0.35 * self.tp.band_half_width_px:
+            # how far the seen edges lay from the bands' centres: profiles sampled off-centre
+            # cut a rise at the band's end (a biased edge), so once more, centred on the pose
+            moved = float(np.abs(r_start).max())
+            if moved <= tp.centred_fraction * hw:
                 break
-        Xc = pose.apply(P)
-        if np.any(Xc[:, 2] <= 0):
-            return "the fitted holder is behind the camera"
-        proj = Xc[:, :2] / Xc[:, 2:3] @ self.K[:2, :2].T + self.K[:2, 2]
-        r = corners_ideal - proj
-        dist = np.sqrt((r ** 2).sum(axis=1))
-        rms = float(np.sqrt(np.mean(dist ** 2)))
-        if rms > self.tp.max_rms_px:
-            return (f"corner residual RMS {rms:.2f} px > {self.tp.max_rms_px} px: the tracked "
-                    "edges do not fit the holder")
-        if dist.max() > self.tp.max_corner_residual_px:
-            return (f"corner {int(np.argmax(dist))} is {dist.max():.2f} px off the model "
-                    f"(> {self.tp.max_corner_residual_px} px)")
-        J = pixel_jacobian(pose.R, pose.t_mm, P, self.K)[0]
-        s2 = float((r ** 2).sum()) / max(r.size - 6, 1)
-        std = np.sqrt(np.clip(np.diag(s2 * np.linalg.inv(J.T @ J)), 0, None))
+        else:
+            return (f"the edges lie {moved:.1f} px from the bands' centres after "
+                    f"{tp.max_passes} passes (> {tp.centred_fraction * hw:.1f} px): the "
+                    "prediction is too far off")
+        why = self._check(pose, r, J, J2, seen)
+        if isinstance(why, str):
+            return why
+        rms, std = why
         lap("check")
+        X = intersect_consecutive(np.where(np.isfinite(lines), lines, 0.0))
+        corners_ideal = np.roll(X, 1, axis=0)   # corner i: edges i - 1 and i
+        visible = seen & np.roll(seen, 1)
+        corners_px = np.full((n, 2), np.nan)
+        corners_px[visible] = self.camera.distort_px(corners_ideal[visible])
         res = TrackResult(k, "track", pose, std, True, "", rms_px=rms,
-                          edge_support=float(support[worst]),
-                          corners_px=self.camera.distort_px(corners_ideal))
-        res.passes = attempt + 1
+                          edge_support=float(support[seen].min()), corners_px=corners_px,
+                          lines_seen=int(seen.sum()), corners_used=int(visible.sum()),
+                          lines_dropped=dropped)
+        res.passes = passes
         return res
 
-    def _edges(self, img, a, d, length, inward, half_width_px):
-        """Sub-pixel edge points in the band of every line at once, and the refitted lines.
+    def _fit_lines_pose(self, pose: Pose, lines: np.ndarray, seen: np.ndarray,
+                        iterations: int = 8):
+        """Gauss-Newton on the model-to-line distances: for every seen edge ``k`` (from model
+        corner ``k`` to ``k + 1``), the signed distances of both projected ends to the edge's
+        line (ideal px); edges not seen are left out, so that a corner whose other edge is
+        hidden still counts through its seen one (Drummond & Cipolla 2002: distances along
+        the edge normals). Parameters: the six DOFs. Returns the pose, the residuals at the
+        end and at the start (each (2 m,)) and the final Jacobian (2 m, 6), or a reason."""
+        P = self.holder.points_holder_mm
+        n = len(P)
+        ks = np.nonzero(seen)[0]
+        rows = np.concatenate([ks, n + ks])        # of the ends (P_k, P_k+1) of all edges
+        L = np.concatenate([lines[ks], lines[ks]])
+        Pe = np.concatenate([P, np.roll(P, -1, axis=0)])[rows]
 
-        The profiles are those of :func:`cutterpose.image.edges.refine_lines` (0.25 px steps
-        across the line from the pocket outwards, smoothed, the edge at the half-maximum
-        centroid of the derivative), sampled for all 20 lines in one go: one distortion, one
-        bilinear gather from the frame (no crop or float copy of the frame), one centroid
-        pass, and Huber-IRLS total least squares vectorised over the lines.
+        def residuals(ps: Pose):
+            X = ps.apply(Pe)
+            if np.any(X[:, 2] <= 0):
+                return None
+            uv = X[:, :2] / X[:, 2:3] @ self.K[:2, :2].T + self.K[:2, 2]
+            return L[:, 0] * uv[:, 0] + L[:, 1] * uv[:, 1] + L[:, 2]
 
-        Returns
-        -------
-        lines : (N, 3) refitted lines (ideal px); support : (N,) share of each line's profiles
-        that found the edge.
-        """
+        r = residuals(pose)
+        if r is None:
+            return "the predicted holder is behind the camera"
+        r0 = r
+        dof = pose.dof
+        for _ in range(iterations):
+            J2 = self._end_jacobian(pose)
+            J = L[:, 0:1] * J2[0::2][rows] + L[:, 1:2] * J2[1::2][rows]
+            try:
+                step = np.linalg.lstsq(J, -r, rcond=None)[0]
+            except np.linalg.LinAlgError:
+                return "the pose fit failed: singular normal equations"
+            dof = dof + step
+            try:
+                pose = Pose.from_euler(*dof)
+            except InputError as e:
+                return f"the pose fit failed: {e}"
+            r = residuals(pose)
+            if r is None:
+                return "the fitted holder is behind the camera"
+            # converged: the last step is far below the std (>= ~0.005 mm / deg here)
+            if np.all(np.abs(step) < 1e-4):
+                break
+        # the Jacobian of the last step (its pose differs from the result by < 1e-4)
+        return pose, r, r0, J, J2
+
+    def _end_jacobian(self, pose: Pose) -> np.ndarray:
+        """Pixel Jacobian (80, 6) of both ends of every edge (``P_k``, then ``P_k+1``)."""
+        P = self.holder.points_holder_mm
+        return pixel_jacobian(pose.R, pose.t_mm, np.concatenate([P, np.roll(P, -1, axis=0)]),
+                              self.K)[0]
+
+    def _check(self, pose: Pose, r: np.ndarray, J: np.ndarray, J2: np.ndarray,
+               seen: np.ndarray):
+        """The checks of a tracked pose (module doc, step 4) on the model-to-line distances
+        ``r`` (Jacobian ``J`` w.r.t. the DOFs): ``(rms_px, std_dof)`` when it passes, else
+        the reason. The std is the Gauss-Newton covariance ``s^2 (J^T J)^-1``."""
         tp = self.tp
-        n = len(a)
-        offs = np.arange(-half_width_px, half_width_px + 1e-9, 0.25)
-        # a profile nearer a corner than the band's half width crosses the neighbouring edge
-        trim = max(tp.end_trim_px, half_width_px + 4.0)
-        counts = np.maximum(((length - 2 * trim) // tp.profile_step_px).astype(int) + 1, 0)
-        ids = np.repeat(np.arange(n), counts)
-        first = np.concatenate([[0], np.cumsum(counts)[:-1]])
-        ts = trim + (np.arange(ids.size) - first[ids]) * tp.profile_step_px
-        base = a[ids] + ts[:, None] * d[ids]
-        n_out = -inward[ids]
-        q = base[:, None, :] + offs[None, :, None] * n_out[:, None, :]
-        obs = self.camera.distort_px(q.reshape(-1, 2))
-        prof = _bilinear(img, obs[:, 0], obs[:, 1]).reshape(len(base), len(offs))
-        prof = gaussian_filter1d(prof, self._refine_params.refine_sigma_px / 0.25, axis=1)
-        o, rows = _half_max_centroids(np.diff(prof, axis=1), offs[0] + 0.125, 0.25)
-        pts = base[rows] + o[:, None] * n_out[rows]
-        lid = ids[rows]
-        support = np.bincount(lid, minlength=n) / np.maximum(counts, 1)
-        lines = _fit_lines(pts, lid, n)
-        return lines, np.where(counts > 0, support, 0.0)
+        rms = float(np.sqrt(np.mean(r ** 2)))
+        # the limits follow the residual of the last full measurement (broken edges image
+        # off the rigid model by a share of their width that varies along the contour: a
+        # residual of the holder, not of the tracking)
+        rms_max = max(tp.max_rms_px, tp.rms_ref_factor * self._rms_ref)
+        res_max = max(tp.max_corner_residual_px, 2.5 * rms_max)
+        if rms > rms_max:
+            return (f"model-to-edge RMS {rms:.2f} px > {rms_max:.2f} px: the tracked edges do "
+                    "not fit the holder")
+        ks = np.nonzero(seen)[0]
+        j = int(np.argmax(np.abs(r)))
+        if abs(r[j]) > res_max:
+            return (f"an end of edge {ks[j % len(ks)]} is {abs(r[j]):.2f} px off its line "
+                    f"(> {res_max:.2f} px)")
+        s2 = float(r @ r) / max(r.size - 6, 1)
+        std = np.sqrt(np.clip(np.diag(s2 * np.linalg.inv(J.T @ J)), 0, None))
+        # the edges left out cost information: a DOF that the seen edges pin down much worse
+        # than all 20 would (a short edge family lost, far away) is not the full
+        # measurement's accuracy, so the frame is measured in full
+        ratio = self._std_ratio(pose, seen, J2)
+        j = int(np.argmax(ratio))
+        if ratio[j] > tp.max_std_ratio:
+            return (f"the {int(seen.sum())} edges seen fix {DOF_NAMES[j]} {ratio[j]:.1f}x less "
+                    f"well than all {len(seen)} (> {tp.max_std_ratio}): too few edges")
+        return rms, std
+
+    def _std_ratio(self, pose: Pose, seen: np.ndarray, J2: np.ndarray) -> np.ndarray:
+        """Per DOF, the std from the seen edges over the std from all edges (same noise):
+        ``sqrt(diag((J_s^T J_s)^-1) / diag((J^T J)^-1))`` with ``J`` the model-to-line
+        distances' Jacobian (``J2``: :meth:`_end_jacobian`), the lines the model's edges
+        projected with ``pose``."""
+        ideal = self._project(pose)
+        d = np.roll(ideal, -1, axis=0) - ideal
+        nrm = np.column_stack([-d[:, 1], d[:, 0]]) / np.linalg.norm(d, axis=1)[:, None]
+        nrm = np.concatenate([nrm, nrm])
+        J = nrm[:, 0:1] * J2[0::2] + nrm[:, 1:2] * J2[1::2]      # rows: edge k's two ends
+        use = np.concatenate([seen, seen])
+        with np.errstate(invalid="ignore"):
+            return np.sqrt(np.diag(np.linalg.inv(J[use].T @ J[use]))
+                           / np.diag(np.linalg.inv(J.T @ J)))
 
     def track(self, frames) -> list[TrackResult]:
         """:meth:`update` over an iterable of frames."""

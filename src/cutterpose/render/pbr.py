@@ -79,7 +79,8 @@ from .analytic import (
 
 __all__ = [
     "FieldPreset", "FIELD_PRESETS", "field_preset", "MitsubaMissingError", "load_mitsuba",
-    "draw_params", "build_geometry", "FieldRendered", "render_field", "render_field_set",
+    "draw_params", "build_geometry", "FieldRendered", "render_field", "render_holder",
+    "render_field_set",
     "save_field_rendered", "edge_step_offsets",
 ]
 
@@ -1015,7 +1016,8 @@ class FieldRendered:
 def render_field(pose: Pose | None = None, camera: Camera | None = None,
                  holder: Holder | None = None, preset: FieldPreset | str = "new",
                  seed: int = 0, variant: str | None = None, spp: int | None = None,
-                 params: dict | None = None, sensor: bool = True) -> FieldRendered:
+                 params: dict | None = None, sensor: bool = True,
+                 noise_seed: int | None = None) -> FieldRendered:
     """Path-trace one 8-bit image of the holder at ``pose`` in field conditions.
 
     Parameters
@@ -1029,6 +1031,8 @@ def render_field(pose: Pose | None = None, camera: Camera | None = None,
     spp : samples per pixel round the holder (default: the preset's).
     params : scene parameters (default: drawn by :func:`draw_params`).
     sensor : False leaves out blur and noise (``image`` is then the rounded ``value``).
+    noise_seed : if given, seeds the Monte Carlo samples and the sensor noise instead of
+        ``seed`` (frames of one sequence: the same scene, fresh noise in every frame).
     """
     t0 = time.perf_counter()
     mi = load_mitsuba(variant)
@@ -1038,6 +1042,8 @@ def render_field(pose: Pose | None = None, camera: Camera | None = None,
     preset = field_preset(preset) if isinstance(preset, str) else preset
     spp = int(preset.spp if spp is None else spp)
     r_par, r_noise, r_mc = np.random.default_rng(seed).spawn(3)
+    if noise_seed is not None:
+        r_noise, r_mc = np.random.default_rng(noise_seed).spawn(2)
     params = draw_params(preset, holder, r_par) if params is None else params
     if (-pose.R.T @ pose.t_mm)[2] >= 0:
         raise InputError("the camera must look at the top face of the holder (-Z side)")
@@ -1101,6 +1107,20 @@ def render_field(pose: Pose | None = None, camera: Camera | None = None,
            "camera_sensor": t4 - t3, "truth": t5 - t4, "total": t5 - t0}
     return FieldRendered(image, value, corners_px, pose, params, int(seed), hidden, edges, tim,
                          mi.variant(), spp)
+
+
+def render_holder(pose: Pose | None = None, camera: Camera | None = None,
+                  holder: Holder | None = None, settings: FieldPreset | str = "new",
+                  seed: int = 0, noise_seed: int | None = None, variant: str | None = None,
+                  spp: int | None = None) -> FieldRendered:
+    """:func:`render_field` with the signature of the analytic ``render_holder`` (the render
+    engine ``pbr`` of :mod:`cutterpose.render.sequence`): ``settings`` is a
+    :class:`FieldPreset` or its name, ``seed`` draws the scene (the same holder, cutter, slurry
+    and textures in every frame of a sequence) and ``noise_seed`` the Monte Carlo samples and
+    the sensor noise of the frame. Samples per pixel: ``spp``, else the preset's."""
+    settings = field_preset(settings) if isinstance(settings, str) else settings
+    return render_field(pose, camera, holder, settings, seed=seed, variant=variant, spp=spp,
+                        noise_seed=noise_seed)
 
 
 def save_field_rendered(r: FieldRendered, out_path, camera: Camera | None = None,

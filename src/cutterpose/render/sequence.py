@@ -3,9 +3,11 @@
 The camera goes from ``z_start_mm`` (~900 mm) to ``z_end_mm`` (~600 mm, the working distance)
 in ``n_frames`` frames at constant velocity, while the lateral offset and the tilt shrink
 linearly (the robot lining up with the holder). Every frame is rendered by an *engine*
-(:data:`ENGINES`; ``analytic``, :func:`cutterpose.render.analytic.render_holder`, for now; a
-physically based field renderer plugs in under its own name with the same signature) with the
-same surface (``seed``) and fresh sensor noise per frame. The camera's auto exposure keeps the
+(:data:`ENGINES`: ``analytic``, :func:`cutterpose.render.analytic.render_holder` with its
+presets, or ``pbr``, the Mitsuba path tracer :func:`cutterpose.render.pbr.render_holder` with
+the field presets ``sharp``/``new``/``worn``, extra ``[field]``) with the same surface
+(``seed``: the same holder, cutter, slurry and textures) and fresh sensor noise (and Monte
+Carlo samples) per frame. The camera's auto exposure keeps the
 face's grey level: the light's ``light_dn`` is scaled by ``(Z / 600 mm)^2`` (the inverse-square
 fall-off of the light at the camera).
 
@@ -34,25 +36,37 @@ from ..geometry.holder import Holder, default_holder
 from ..geometry.pose import Pose
 from .analytic import D_REF_MM, RenderSettings, preset, render_holder
 
-__all__ = ["ENGINES", "engine", "approach_poses", "render_sequence"]
+__all__ = ["ENGINES", "PRESET_LOOKUP", "engine", "engine_preset", "approach_poses",
+           "render_sequence"]
 
 
-def _pbr_engine(*args, **kwargs):
-    """The field renderer (``render/pbr.py``), when it is there."""
-    try:
-        from . import pbr  # type: ignore[attr-defined]
-    except ImportError:
-        raise InputError("render engine 'pbr' is not available in this build (render/pbr.py "
-                         "missing)") from None
-    fn = getattr(pbr, "render_holder", None)
-    if fn is None:
-        raise InputError("render engine 'pbr': render/pbr.py has no render_holder(pose, camera, "
-                         "holder, settings, seed, noise_seed)")
-    return fn(*args, **kwargs)
+def _pbr_module():
+    """``render/pbr.py`` with Mitsuba importable, or a typed error saying what to install."""
+    from . import pbr
+
+    pbr.load_mitsuba()   # MitsubaMissingError (an InputError-like CutterposeError) if absent
+    return pbr
+
+
+def _pbr_engine(pose, camera, holder, settings, seed=0, noise_seed=None, spp=None):
+    """The field renderer (:func:`cutterpose.render.pbr.render_holder`, Mitsuba 3; the
+    optional extra ``[field]``)."""
+    return _pbr_module().render_holder(pose, camera, holder, settings, seed=seed,
+                                       noise_seed=noise_seed, spp=spp)
+
+
+def _pbr_preset(name: str):
+    from .pbr import field_preset
+
+    return field_preset(name)
 
 
 #: name -> ``render(pose, camera, holder, settings, seed=, noise_seed=) -> Rendered``
 ENGINES: dict[str, Callable] = {"analytic": render_holder, "pbr": _pbr_engine}
+#: name -> the engine's preset lookup (``analytic.preset``: RenderSettings, ``pbr``:
+#: FieldPreset) and its default preset
+PRESET_LOOKUP: dict[str, tuple[Callable, str]] = {"analytic": (preset, "easy"),
+                                                  "pbr": (_pbr_preset, "new")}
 
 
 def engine(name: str) -> Callable:
@@ -61,6 +75,13 @@ def engine(name: str) -> Callable:
     except KeyError:
         raise InputError(f"unknown render engine {name!r}; choose one of "
                          f"{', '.join(ENGINES)}") from None
+
+
+def engine_preset(engine_name: str, name: str | None):
+    """The render settings named ``name`` for ``engine_name`` (None: the engine's default)."""
+    engine(engine_name)
+    lookup, default = PRESET_LOOKUP[engine_name]
+    return lookup(default if name is None else name)
 
 
 def approach_poses(n_frames: int = 60, z_start_mm: float = 900.0, z_end_mm: float = 600.0,
@@ -98,10 +119,11 @@ def approach_poses(n_frames: int = 60, z_start_mm: float = 900.0, z_end_mm: floa
 
 def _frame(args):
     """Render one frame (a job of :func:`cutterpose.parallel.run_jobs`): (entry, PNG bytes)."""
-    i, k, pose, camera, holder, settings, eng, seed = args
+    i, k, pose, camera, holder, settings, eng, seed = args[:8]
+    extra = args[8] if len(args) > 8 else {}
     s = settings.with_(light_dn=settings.light_dn * (float(pose.t_mm[2]) / D_REF_MM) ** 2)
     noise = int(np.random.SeedSequence([seed, 1, k]).generate_state(1)[0])
-    r = engine(eng)(pose, camera, holder, s, seed=seed, noise_seed=noise)
+    r = engine(eng)(pose, camera, holder, s, seed=seed, noise_seed=noise, **extra)
     name = f"frame_{i:04d}.png"
     ok, png = cv2.imencode(".png", r.image)
     if not ok:  # pragma: no cover
@@ -112,23 +134,47 @@ def _frame(args):
 
 def render_sequence(out_dir, n_frames: int = 60, z_start_mm: float = 900.0,
                     z_end_mm: float = 600.0, camera: Camera | None = None,
-                    holder: Holder | None = None, settings: RenderSettings | str = "easy",
+                    holder: Holder | None = None, settings: RenderSettings | str | None = None,
                     seed: int = 0, engine_name: str = "analytic", drop: tuple = (),
                     jump_at: int | None = None, jump_mm: tuple = (30.0, 0.0, 0.0),
-                    workers: int = 1, scheduler=None, progress=None) -> Path:
+                    workers: int = 1, scheduler=None, progress=None,
+                    spp: int | None = None) -> Path:
     """Render an approach (module doc) into ``out_dir`` with its ``truth.json``; returns the
-    path of ``truth.json``. ``progress(done, total)`` after each frame."""
+    path of ``truth.json``. ``settings``: the engine's settings or preset name (None: the
+    engine's default, ``easy`` / ``new``); ``spp``: pbr samples per pixel (None: the
+    preset's). ``progress(done, total)`` after each frame.
+
+    Raises
+    ------
+    InputError
+        Unknown engine or preset; ``spp`` with the analytic engine; pbr in several local
+        processes (Mitsuba uses every core itself).
+    MitsubaMissingError
+        ``engine_name="pbr"`` without Mitsuba 3 (the extra ``[field]``).
+    """
     from ..parallel import run_jobs
 
     camera = default_camera("table1") if camera is None else camera
     holder = default_holder() if holder is None else holder
-    settings = preset(settings) if isinstance(settings, str) else settings
-    engine(engine_name)
+    if settings is None or isinstance(settings, str):
+        settings = engine_preset(engine_name, settings)
+    else:
+        engine(engine_name)
+    extra = {}
+    if engine_name == "pbr":
+        if workers > 1 and scheduler is None:
+            raise InputError("the pbr engine renders in one process (Mitsuba uses every core "
+                             "itself); use workers=1 or a cluster scheduler")
+        _pbr_module()   # fail now, not in the first job, when Mitsuba is missing
+        if spp is not None:
+            extra["spp"] = int(spp)
+    elif spp is not None:
+        raise InputError("spp is a pbr option (the analytic engine does not sample)")
     poses, index = approach_poses(n_frames, z_start_mm, z_end_mm, drop=tuple(drop),
                                   jump_at=jump_at, jump_mm=jump_mm)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    jobs = [(i, k, p, camera, holder, settings, engine_name, int(seed))
+    jobs = [(i, k, p, camera, holder, settings, engine_name, int(seed), extra)
             for i, (k, p) in enumerate(zip(index, poses))]
     done = [0]
 
@@ -143,7 +189,8 @@ def render_sequence(out_dir, n_frames: int = 60, z_start_mm: float = 900.0,
     doc = {"camera": camera.to_dict(), "holder": holder.to_dict(), "seed": int(seed),
            "presets": {settings.name: asdict(settings)},
            "sequence": {"n_frames": n_frames, "z_start_mm": z_start_mm, "z_end_mm": z_end_mm,
-                        "engine": engine_name, "dropped": sorted(int(d) for d in drop),
+                        "engine": engine_name, "spp": extra.get("spp"),
+                        "dropped": sorted(int(d) for d in drop),
                         "jump_at": jump_at, "jump_mm": list(jump_mm) if jump_at is not None
                         else None, "auto_exposure": "light_dn * (Z / 600 mm)^2"},
            "images": images}

@@ -1,0 +1,204 @@
+"""Tracking on field-preset approach sequences (issue 13, item 2): per frame, the tracker and the
+full measurement in the same run, on one core.
+
+Input: folders written by ``cutterpose render-sequence`` (any engine and preset; the truth and
+the camera come from their ``truth.json``). For every frame, in this order:
+
+1. ``Tracker.update`` (CPU time of this process around it, and wall clock);
+2. the full measurement ``measure`` (dm+, the tracker's approach parameters and limits), timed
+   the same way: its std per DOF is the frame's reference band, its CPU time the denominator of
+   the speed ratio.
+
+A tracked frame is *within the band* when every DOF's error (against the truth) is at most 3
+std of the full measurement; where the full measurement refused the frame, the std of the
+nearest frame whose full measurement was accepted is used (and said). Fall-backs are counted
+with their reasons. A sequence with a jump (``"jump_at"`` in its truth) also reports the
+recovery: the jump frame must fall back and say why, the next one be tracked.
+
+Run it on one core (``taskset -c 0``; numpy/OpenCV single-threaded by the environment below):
+
+    OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 taskset -c 0 \\
+        python benchmarks/track_field.py SEQ_DIR [SEQ_DIR ...] --out results/track_field
+
+Writes ``<out>/<name>/frames.csv`` per sequence and prints the summary.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import sys
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from cutterpose.frames import load_frame
+from cutterpose.geometry.camera import camera_from_dict
+from cutterpose.geometry.holder import holder_from_dict
+from cutterpose.geometry.pose import pose_errors
+from cutterpose.pipeline import DOF_NAMES, measure
+from cutterpose.tracking import Tracker, TrackParams, approach_limits, approach_params
+
+cv2.setNumThreads(1)
+
+
+def run(seq: Path, with_full: bool = True, track: TrackParams | None = None) -> list[dict]:
+    truth = json.loads((seq / "truth.json").read_text())
+    camera = camera_from_dict(truth["camera"])
+    holder = holder_from_dict(truth["holder"])
+    tracker = Tracker(camera, holder, filter=True, track=track)
+    params, limits = approach_params(camera), approach_limits()
+    rows = []
+    for e in truth["images"]:
+        img = load_frame(seq / e["file"])
+        R, t = np.array(e["R_cam_holder"]), np.array(e["t_cam_holder_mm"])
+        c0, w0 = time.process_time(), time.perf_counter()
+        r = tracker.update(img)
+        cpu, wall = (time.process_time() - c0) * 1e3, (time.perf_counter() - w0) * 1e3
+        err = (pose_errors(R, t, r.pose.R, r.pose.t_mm).dof[0] if r.pose is not None
+               else np.full(6, np.nan))
+        row = {"frame": e["frame"], "z_mm": t[2], "mode": r.mode, "cpu_ms": cpu,
+               "wall_ms": wall, "passes": r.passes, "lines_seen": r.lines_seen,
+               "lines_dropped": r.lines_dropped, "rms_px": r.rms_px,
+               "reason": r.fallback_reason}
+        row |= {f"err_{n}": v for n, v in zip(DOF_NAMES, err)}
+        if with_full:
+            c0 = time.process_time()
+            m = measure(img, camera, holder, "dm+", params, limits)
+            row["full_cpu_ms"] = (time.process_time() - c0) * 1e3
+            row["full_ok"] = bool(m.ok)
+            ferr = (pose_errors(R, t, m.pose.R, m.pose.t_mm).dof[0] if m.pose is not None
+                    else np.full(6, np.nan))
+            row |= {f"full_std_{n}": v for n, v in zip(DOF_NAMES, m.std_dof)}
+            row |= {f"full_err_{n}": v for n, v in zip(DOF_NAMES, ferr)}
+            row["full_reason"] = "" if m.ok else m.quality.reason
+        rows.append(row)
+        print(f"  {seq.name} frame {e['frame']}: {r.mode} {cpu:.1f} ms", file=sys.stderr,
+              flush=True)
+    if with_full:
+        band(rows)
+    return rows
+
+
+def band(rows: list[dict]) -> None:
+    """Each tracked frame's |error| / std of the full measurement (its own, or the nearest
+    accepted one's)."""
+    ok = [i for i, r in enumerate(rows) if r["full_ok"]]
+    for i, r in enumerate(rows):
+        if not ok:
+            r["band_from"], r["max_z"] = None, np.nan
+            continue
+        j = i if r["full_ok"] else min(ok, key=lambda k: abs(k - i))
+        std = np.array([rows[j][f"full_std_{n}"] for n in DOF_NAMES])
+        err = np.array([r[f"err_{n}"] for n in DOF_NAMES])
+        z = np.abs(err) / std
+        r["band_from"] = rows[j]["frame"]
+        r["max_z"] = float(np.max(z))
+        r["max_z_dof"] = DOF_NAMES[int(np.argmax(z))] if np.all(np.isfinite(z)) else ""
+        r["in_band"] = bool(np.all(z <= 3.0))
+        # the tracked pose against the full measurement of the same frame, in its std
+        if r["full_ok"] and r["mode"] == "track":
+            ferr = np.array([r[f"full_err_{n}"] for n in DOF_NAMES])
+            r["max_dev_z"] = float(np.max(np.abs(err - ferr) / std))
+
+
+def summary(name: str, rows: list[dict], truth: dict) -> None:
+    tr = [r for r in rows if r["mode"] == "track"]
+    modes = {m: sum(r["mode"] == m for r in rows) for m in ("track", "full", "lost")}
+    print(f"{name}: {len(rows)} frames, {modes['track']} tracked, {modes['full']} full "
+          f"(first + fall-backs), {modes['lost']} lost")
+    if tr:
+        cpu = np.array([r["cpu_ms"] for r in tr])
+        print(f"  tracked: CPU median {np.median(cpu):.1f} ms (p90 {np.percentile(cpu, 90):.1f}, "
+              f"max {cpu.max():.1f}), wall median {np.median([r['wall_ms'] for r in tr]):.1f} "
+              f"ms; passes 1/2/3: {[sum(r['passes'] == p for r in tr) for p in (1, 2, 3)]}; "
+              f"edges seen median {np.median([r['lines_seen'] for r in tr]):.0f} (min "
+              f"{min(r['lines_seen'] for r in tr)}), edges dropped as outliers in "
+              f"{sum(r['lines_dropped'] > 0 for r in tr)} frames")
+    reasons: dict[str, list] = {}
+    for r in rows[1:]:
+        if r["mode"] != "track":
+            key = r["reason"].split(":")[0][:70]
+            reasons.setdefault(key, []).append(r["frame"])
+    for k, v in reasons.items():
+        print(f"  fall-back x{len(v)} (frames {v}): {k}")
+    if "full_ok" not in rows[0]:
+        return
+    full_cpu = np.array([r["full_cpu_ms"] for r in rows])
+    nok = sum(r["full_ok"] for r in rows)
+    print(f"  full measurement: CPU median {np.median(full_cpu):.0f} ms, accepted on "
+          f"{nok}/{len(rows)}")
+    if tr:
+        print(f"  ratio tracked / full (medians, same run): "
+              f"{np.median(cpu) / np.median(full_cpu):.3f}")
+        zs = [r["max_z"] for r in tr]
+        inb = sum(bool(r.get("in_band")) for r in tr)
+        own = sum(r["band_from"] == r["frame"] for r in tr)
+        print(f"  tracked frames within 3 std of the full measurement: {inb}/{len(tr)} "
+              f"(band from the frame's own full measurement on {own}, the nearest accepted "
+              f"one on the rest); largest |err|/std {np.nanmax(zs):.2f}")
+        dev = [r["max_dev_z"] for r in tr if "max_dev_z" in r]
+        if dev:
+            print(f"  |tracked - full pose| / std of the full measurement, same frame: median "
+                  f"{np.median(dev):.2f}, largest {max(dev):.2f} (on {len(dev)} frames)")
+        for r in tr:
+            if not r.get("in_band"):
+                print(f"    outside: frame {r['frame']} {r['max_z_dof']} {r['max_z']:.2f} std "
+                      f"(band from frame {r['band_from']})")
+        e = np.array([[abs(r[f"err_{n}"]) for n in DOF_NAMES] for r in tr])
+        fe = np.array([[abs(r[f"full_err_{n}"]) for n in DOF_NAMES] for r in tr
+                       if r["full_ok"]])
+        print("  largest |error| tracked: " + ", ".join(
+            f"{n} {v:.3f}" for n, v in zip(DOF_NAMES, e.max(axis=0))))
+        if len(fe):
+            print("  largest |error| full (accepted, same frames): " + ", ".join(
+                f"{n} {v:.3f}" for n, v in zip(DOF_NAMES, fe.max(axis=0))))
+    seq = truth.get("sequence", {})
+    if seq.get("jump_at") is not None:
+        ja = seq["jump_at"]
+        after = [r for r in rows if r["frame"] >= ja]
+        if after:
+            j = after[0]
+            nxt = after[1]["mode"] if len(after) > 1 else "-"
+            print(f"  jump at frame {ja}: {j['mode']} ({j['reason'][:90]}); next frame: {nxt}")
+    if seq.get("dropped"):
+        for d in seq["dropped"]:
+            nx = [r for r in rows if r["frame"] > d][:1]
+            if nx:
+                print(f"  frame {d} dropped: frame {nx[0]['frame']} {nx[0]['mode']} "
+                      f"({nx[0]['passes']} passes)")
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("sequences", nargs="+", type=Path)
+    ap.add_argument("--out", type=Path, default=Path("results/track_field"))
+    ap.add_argument("--no-full", action="store_true", help="skip the full measurement")
+    ap.add_argument("--track", action="append", default=[], metavar="NAME=VALUE",
+                    help="a TrackParams field (repeatable), e.g. max_rms_px=0.5")
+    a = ap.parse_args()
+    tp = TrackParams(**{k: float(v) if "." in v else int(v)
+                        for k, v in (x.split("=", 1) for x in a.track)})
+    for seq in a.sequences:
+        rows = run(seq, not a.no_full, tp)
+        out = a.out / seq.name
+        out.mkdir(parents=True, exist_ok=True)
+        keys = list(dict.fromkeys(k for r in rows for k in r))
+        with open(out / "frames.csv", "w", newline="") as fh:
+            w = csv.DictWriter(fh, keys)
+            w.writeheader()
+            w.writerows(rows)
+        truth = json.loads((seq / "truth.json").read_text())
+        s = truth.get("sequence", {})
+        print(f"\n{seq} ({s.get('engine')}, preset {', '.join(truth['presets'])}"
+              f"{', spp ' + str(s['spp']) if s.get('spp') else ''}; {s.get('z_start_mm')} -> "
+              f"{s.get('z_end_mm')} mm)")
+        summary(seq.name, rows, truth)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
