@@ -3,8 +3,9 @@
 Drawn on the image (reduced to ``width_px`` and cropped around the holder): the inside contour
 (grey), the characteristic segments (alternating green/cyan), the gradient edge points (yellow,
 thinned), the detected corners (red circles, index 0 marked), the holder model projected at the
-estimated pose (magenta: inner contour and outer rectangle) and the pose with its standard
-deviations and the quality verdict in text.
+estimated pose (magenta: inner contour and outer rectangle), for ``dm+b`` each edge segment's
+design-edge point with a tick across the measured band (white: used, red: down-weighted), and
+the pose with its standard deviations and the quality verdict in text.
 
 Convention:
     Input points are observed full-image pixels; drawing uses ``cv2`` fixed-point coordinates
@@ -79,6 +80,21 @@ def draw_overlay(image: np.ndarray, measurement, camera: Camera, holder: Holder,
             if np.all(np.isfinite(poly)):
                 cv2.polylines(out, [_pts(poly, scale, origin)], True, (255, 0, 255), 1, aa,
                               _SHIFT)
+    band = None if measurement.estimate is None else measurement.estimate.info.get("band")
+    if band is not None:
+        # dm+b: each segment's design-edge point with a tick across the band (its measured
+        # width: the radius times px per mm), white = used, red = down-weighted or not used
+        bp = band.fit.profiles
+        q = band.fit.design_points_px()
+        ok = np.isfinite(q).all(axis=1)
+        width = np.nan_to_num(band.fit.best.radius_mm * bp.px_per_mm)
+        ends = q + (width[:, None] + 2.0) * bp.normals_ideal
+        used = band.weights > 0.5
+        for a, b, u in zip(q[ok], ends[ok], used[ok]):
+            pa, pb = _pts(camera.distort_px(np.vstack([a, b])), scale, origin)
+            col = (255, 255, 255) if u else (0, 0, 255)
+            cv2.line(out, tuple(pa[0]), tuple(pb[0]), col, 1, aa, _SHIFT)
+            cv2.circle(out, tuple(pa[0]), 2 << _SHIFT, col, -1, aa, _SHIFT)
     if measurement.corners_px is not None:
         for k, p in enumerate(_pts(measurement.corners_px, scale, origin)):
             cv2.circle(out, tuple(p[0]), 5 << _SHIFT, (0, 0, 255), 2 if k == 0 else 1, aa,

@@ -7,7 +7,7 @@ bundled Table 1 cell (``cutterpose/data/cell_table1.toml``)::
 
     name = "cell 1"
     camera = "camera.json"            # a camera file, or "table1" / "synthetic" (bundled)
-    method = "dm+"                    # pose method (cutterpose.methods)
+    method = "dm+b"                   # pose method (cutterpose.methods)
     chain = "field"                   # image chain: field (default) or paper (section 2.1)
     handeye = "handeye.json"          # eye-in-hand calibration (PROTOCOL.md "Hand-eye file")
     default_holder = "default"
@@ -134,7 +134,7 @@ class _Service(_Strict):
 class _CellFile(_Strict):
     name: str = "cell"
     camera: str = "table1"
-    method: str = "dm+"
+    method: str = "dm+b"
     chain: Literal["field", "paper"] = "field"
     handeye: str | None = None
     default_holder: str = "default"

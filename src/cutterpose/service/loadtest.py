@@ -45,10 +45,12 @@ def reduced_camera_dict(factor: int = 4) -> dict:
 
 
 def write_cell(folder, factor: int = 4, token: str | None = None, handeye: dict | None = None,
-               **service) -> Path:
+               method: str | None = None, **service) -> Path:
     """A cell file in ``folder`` with the camera binned by ``factor`` (1: the bundled Table 1
     camera), data in ``folder/data``, and ``service`` settings; with ``token`` a token file,
-    with ``handeye`` (a hand-eye object, PROTOCOL.md) a hand-eye file."""
+    with ``handeye`` (a hand-eye object, PROTOCOL.md) a hand-eye file. ``method`` defaults to
+    ``dm+b`` at full resolution and ``dm+`` on a binned camera (whose 1-2 px per mm cannot
+    resolve the band of a broken edge)."""
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     camera = "table1"
@@ -59,7 +61,9 @@ def write_cell(folder, factor: int = 4, token: str | None = None, handeye: dict 
     if token is not None:
         (folder / "token.txt").write_text(token + "\n")
         service["token_file"] = "token.txt"
-    lines = [f'name = "test cell, factor {factor}"', f'camera = "{camera}"']
+    method = method or ("dm+b" if factor == 1 else "dm+")
+    lines = [f'name = "test cell, factor {factor}"', f'camera = "{camera}"',
+             f'method = "{method}"']
     if handeye is not None:
         (folder / "handeye.json").write_text(json.dumps(handeye))
         lines.append('handeye = "handeye.json"')
