@@ -51,9 +51,10 @@ def test_buffer_is_viewed_not_copied_or_decoded(frame):
 
 def test_measure_on_bytes_equals_measure_on_png(frame):
     d, img = frame
-    m_png = measure(d / "f.png", CAM)
-    m_raw = measure(img.tobytes(), CAM)        # a frame of the camera's size
-    m_file = measure(d / "f.raw", CAM)         # size from the sidecar
+    # the reduced test camera cannot resolve a broken edge's band: the corner method
+    m_png = measure(d / "f.png", CAM, method="dm+")
+    m_raw = measure(img.tobytes(), CAM, method="dm+")    # a frame of the camera's size
+    m_file = measure(d / "f.raw", CAM, method="dm+")     # size from the sidecar
     assert m_png.ok, m_png.quality.reason
     for m in (m_raw, m_file):
         assert m.ok
@@ -82,15 +83,16 @@ def test_cli_measure_raw(frame):
     d, img = frame
     h, w = img.shape
     r = runner.invoke(app, ["measure", str(d / "nosidecar.bin"), "--raw", f"{w}x{h}",
-                            "--camera", str(d / "cam.json"), "--json"])
+                            "--camera", str(d / "cam.json"), "--json", "--method", "dm+"])
     assert r.exit_code == 0, r.output
     got = json.loads(r.output)
-    ref = measure(d / "f.png", CAM)
+    ref = measure(d / "f.png", CAM, method="dm+")
     dof = [got["pose"][k] for k in ("alpha_deg", "beta_deg", "gamma_deg", "X_mm", "Y_mm",
                                      "Z_mm")]
     np.testing.assert_allclose(dof, ref.pose.dof, rtol=0, atol=1e-9)
     assert "load" in got["timings_ms"]
-    r = runner.invoke(app, ["measure", str(d / "f.raw"), "--camera", str(d / "cam.json")])
+    r = runner.invoke(app, ["measure", str(d / "f.raw"), "--camera", str(d / "cam.json"),
+                            "--method", "dm+"])
     assert r.exit_code == 0, r.output
     r = runner.invoke(app, ["measure", str(d / "nosidecar.bin"), "--raw", f"{w}x{h + 1}",
                             "--camera", str(d / "cam.json")])

@@ -58,8 +58,9 @@ __all__ = ["BandProfiles", "BandFit", "sample_band", "fit_band", "band_looks"]
 COARSE_RADII_MM = np.array([0.0, 0.25, 0.5, 0.75, 1.0, 1.25, 1.5, 2.0, 2.5, 3.0, 3.5, 4.0, 4.5,
                             5.0, 5.75, 6.5])
 #: the fine scan's radius step: 0.05 mm up to 2 mm (where the coarse grid is 0.25 mm), 0.1 mm
-#: beyond (coarse 0.5 mm); 13 radii round the coarse best
+#: beyond (coarse 0.5 mm); FINE_RADII radii round the coarse best
 FINE_STEP_MM = 0.05
+FINE_RADII = 13
 #: the coarse shift scan: +- this many px (the start may be a few mm off in depth) in steps of
 COARSE_SHIFT_PX = 6.0
 COARSE_SHIFT_STEP_PX = 0.4
@@ -72,8 +73,10 @@ BLURS_PX = (0.6, 0.9, 1.2)
 #: a look is plausible (its poses enter the budget's model spread) when the best total cost is
 #: at least this fraction of its own (the same margin as dm+r's shape choice)
 PLAUSIBLE = 0.7
-#: at most this many plausible looks (the most likely) are kept
+#: at most this many plausible looks (the most likely) are kept, and only those whose
+#: likelihood weight relative to the best (``(C_best / C)^(n / 2)``, the budget's) is at least
 MAX_PLAUSIBLE = 3
+MIN_LOOK_WEIGHT = 0.01
 
 
 def band_looks(shapes=("round", "chamfer")) -> list[em.EdgeLook]:
@@ -175,17 +178,27 @@ def sample_band(image: np.ndarray, camera: Camera, holder: Holder, R_cam_holder,
     # edges not seen are all NaN: their medians are NaN (and marked invalid below)
     with np.errstate(invalid="ignore"), warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
-        med = np.nanmedian(vals, axis=1)
+        med = _median_rows(vals)
         dev = np.sqrt(np.nanmean((vals - med[:, None, :]) ** 2, axis=2))     # (S, P)
         ref = np.nanmedian(dev, axis=1, keepdims=True)
         keep = np.isfinite(dev) & (dev <= 3.0 * np.maximum(ref, 1.0))
         kept = np.where(keep[..., None], vals, np.nan)
-        prof = np.nanmedian(kept, axis=1)
+        prof = _median_rows(kept)
     used = keep.sum(axis=1)
     valid = seen[seg_edge] & (used >= max(4, positions // 3)) & np.isfinite(prof).all(axis=1)
     return BandProfiles(w, prof, seg_edge, frac_c, q.mean(axis=1), nrm.mean(axis=1),
                         np.concatenate([P2.mean(axis=1), np.zeros((len(j), 1))], axis=1),
                         used, valid, a_s_seg)
+
+
+def _median_rows(v: np.ndarray) -> np.ndarray:
+    """NaN-median over axis 1 of (S, P, G): the plain median for segments without NaN (most;
+    several times faster), the NaN-aware one for the others."""
+    out = np.median(v, axis=1)
+    bad = np.isnan(out).any(axis=1)
+    if bad.any():
+        out[bad] = np.nanmedian(v[bad], axis=1)
+    return out
 
 
 @dataclass
@@ -218,10 +231,10 @@ class BandFit:
 
 
 def _segment_models(view: em.EdgeView, look: em.EdgeLook, radii, bp: BandProfiles,
-                    half_width_px: float):
+                    half_width_px: float, step_px: float = STEP_PX):
     """(S, M, G0) model profiles of the segments (interpolated between the edge's two ends) on
-    the model grid, and the grid."""
-    w0, _, bl = em.profiles(radii, view, look, half_width_px=half_width_px, step_px=STEP_PX)
+    the model grid (step ``step_px``), and the grid."""
+    w0, _, bl = em.profiles(radii, view, look, half_width_px=half_width_px, step_px=step_px)
     k = bp.edge
     n = bl.shape[0]
     a = bl[k, 1]                      # the edge's first end: corner k, side 1
@@ -259,13 +272,14 @@ def _fit_look(bp: BandProfiles, view: em.EdgeView, look: em.EdgeLook, hw: float,
     S = len(bp.edge)
     Y = np.where(bp.valid[:, None], bp.values, 0.0)
     if coarse is None:
+        # every second sample on a model grid of twice the step: the coarse scan needs no more
+        hc = 2 * h
         radii = COARSE_RADII_MM
-        w0, models = _segment_models(view, look, radii, bp, hw)
-        m0 = int(round(-w0[0] / h))
-        # every second sample: the coarse scan needs no more
+        w0, models = _segment_models(view, look, radii, bp, hw, step_px=hc)
+        m0 = int(round(-w0[0] / hc))
         keep = slice(0, None, 2)
-        w_idx = np.rint(bp.w_px[keep] / h).astype(int)
-        st = int(round(COARSE_SHIFT_STEP_PX / h))
+        w_idx = np.rint(bp.w_px[keep] / hc).astype(int)
+        st = max(1, int(round(COARSE_SHIFT_STEP_PX / hc)))
         k = int(round(shift_range_px / COARSE_SHIFT_STEP_PX))
         shifts = st * np.arange(-k, k + 1)
         cost, gain = _scan(Y[:, keep], models, m0, w_idx, shifts)
@@ -273,22 +287,20 @@ def _fit_look(bp: BandProfiles, view: em.EdgeView, look: em.EdgeLook, hw: float,
         jb = np.argmin(flat, axis=1)
         mi, hi = np.unravel_index(jb, cost.shape[1:])
         r = radii[mi]
-        s = shifts[hi] * h
+        s = shifts[hi] * hc
         c = flat[np.arange(S), jb] * (len(bp.w_px) / len(w_idx))
         g = gain.reshape(S, -1)[np.arange(S), jb]
         var = np.full(S, np.nan)
     else:
-        # per-end radius windows round the coarse radius (both segments of an edge share ends)
-        nr = 13
+        # per-segment radius windows round the coarse radius; the n_seg segments of an edge
+        # share its two ends, so the edge model runs once per segment index
+        nr = FINE_RADII
         step = np.where(coarse.radius_mm < 2.0, FINE_STEP_MM, 2 * FINE_STEP_MM)[:, None]
         base = np.clip(coarse.radius_mm[:, None] - step * (nr // 2), 0, None)
         rad_seg = base + step * np.arange(nr)[None, :]                         # (S, nr)
         n = view.a_s.shape[0]
-        # segment models need per-segment radii: evaluate per end with the edge's windows,
-        # segment by segment (n_seg segments share an edge's ends)
         per_end = np.zeros((n, 2, nr))
         S_per_edge = S // n
-        models = None
         w_idx = np.rint(bp.w_px / h).astype(int)
         cost_all = np.full((S, nr, 2 * FINE_SHIFT_STEPS + 1), np.inf)
         gain_all = np.zeros_like(cost_all)
@@ -395,22 +407,40 @@ def fit_band(bp: BandProfiles, camera: Camera, holder: Holder, R_cam_holder, t_c
             c = _fit_look(bp, view, lf.look, hw, shift_range_px=2.0)
             out.append(_fit_look(bp, view, lf.look, hw, c))
         return BandFit(out[0], out[1:], bp)
-    coarse = [_fit_look(bp, view, lk, hw) for lk in looks]
+    # the look is chosen on every other segment (with 40 or more): the coarse scans of all
+    # looks are the fit's main cost, and a shared look needs no more
+    sub = _subset(bp, np.arange(0, len(bp.edge), 2)) if len(bp.edge) >= 40 else bp
+    coarse = [_fit_look(sub, view, lk, hw) for lk in looks]
     totals = np.array([lf.total for lf in coarse])
     order = np.argsort(totals)
     best_i = int(order[0])
+    n_eff = max(1, int(np.ceil(0.75 * int(sub.valid.sum()))))
+    full = _fit_look(bp, view, looks[best_i], hw) if sub is not bp else coarse[best_i]
     # the chosen variant at each blur, then the plausible others at their coarse blur
     fine = []
     for b in BLURS_PX:
         lk = replace(looks[best_i], blur_sigma_px=b)
-        fine.append(_fit_look(bp, view, lk, hw, coarse[best_i]))
+        fine.append(_fit_look(bp, view, lk, hw, full))
     best = min(fine, key=lambda lf: lf.total)
     plausible = []
     for i in order[1:]:
-        if (not np.isfinite(totals[i]) or totals[best_i] < PLAUSIBLE * totals[i]
+        ratio = totals[best_i] / totals[i] if np.isfinite(totals[i]) else 0.0
+        # plausible: close in cost, and of a likelihood weight that matters in the budget
+        if (ratio < PLAUSIBLE or ratio ** (0.5 * n_eff) < MIN_LOOK_WEIGHT
                 or len(plausible) == MAX_PLAUSIBLE):
             continue
         lk = replace(looks[i], blur_sigma_px=best.look.blur_sigma_px)
-        plausible.append(_fit_look(bp, view, lk, hw, coarse[i]) if fine_plausible
-                         else replace(coarse[i], look=lk))
+        if fine_plausible:
+            c = _fit_look(bp, view, lk, hw) if sub is not bp else coarse[i]
+            plausible.append(_fit_look(bp, view, lk, hw, c))
+        else:
+            plausible.append(replace(coarse[i], look=lk))
     return BandFit(best, plausible, bp)
+
+
+def _subset(bp: BandProfiles, idx) -> BandProfiles:
+    """The profiles of the segments ``idx`` only."""
+    return BandProfiles(bp.w_px, bp.values[idx], bp.edge[idx], bp.frac[idx],
+                        bp.points_ideal_px[idx], bp.normals_ideal[idx],
+                        bp.points_holder_mm[idx], bp.used[idx], bp.valid[idx],
+                        bp.px_per_mm[idx])
