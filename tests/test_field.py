@@ -131,6 +131,24 @@ def test_measure_uses_the_visible_corners(field_image, method):
     assert d["order"] == "holder" and len(d["visible"]) == 20
 
 
+def test_every_seen_edge_must_lie_on_the_model(field_image):
+    """With few corners, dm/dm+ can fit a wrong pose to them (an approach frame measured 6.4 mm
+    and 2.2 deg off with 6 of 20 corners); the seen edges without corners betray it: the
+    verdict refuses a pose that leaves a seen edge more than max_corner_residual_px off."""
+    from cutterpose.pipeline import measure_features, worst_line_residual
+
+    cam, r = field_image
+    hol = default_holder()
+    f = detect_features(r.image, cam, hol)
+    _, good = worst_line_residual(POSE, f, cam, hol)
+    wrong = Pose.from_euler(*(POSE.dof + np.array([0, 2.2, 0, 0, 0, -6.4])))
+    k, bad = worst_line_residual(wrong, f, cam, hol)
+    assert good < 0.5 and bad > 4.0 and f.lines_visible[k]
+    # the check does not refuse the right pose (every seen edge is on the model)
+    m = measure_features(f, cam, hol, method="dm+")
+    assert m.ok, m.quality.reason
+
+
 def test_paper_chain_stays_selectable(field_image):
     """FeatureParams.paper(): section 2.1's threshold chain, corners in contour order."""
     cam, hol = small_camera(0.5), default_holder()

@@ -578,8 +578,39 @@ def measure_features(features: Features, camera: Camera, holder: Holder, method:
     amb = ambiguity_ratio(est, features.corners_ideal_px, camera, holder,
                           order=features.order)
     q = _verdict(est, std, r, limits, amb, bias, offset_px, budget)
+    if q.ok and pose is not None and method != "dm+b" and features.order == "holder":
+        # the corners may fit a wrong pose when few are seen (dm/dm+ need no correspondences):
+        # every seen edge, with or without its corners, must lie on the model at the pose
+        # (dm+b fits the edges themselves, through their bands: its residuals say so)
+        k, off = worst_line_residual(pose, features, camera, holder)
+        if off > limits.max_corner_residual_px:
+            q.ok, q.reason = False, (f"pocket edge {k} is {off:.1f} px off the model at this "
+                                     f"pose (> {limits.max_corner_residual_px} px): the corners "
+                                     "fit a wrong pose")
     timings["quality"] = (time.perf_counter() - t0) * 1e3
     return Measurement(method, pose, std, q, features.visible_corners_px, features, est, timings)
+
+
+def worst_line_residual(pose: Pose, features: Features, camera: Camera, holder: Holder
+                        ) -> tuple[int, float]:
+    """The seen edge line (field chain, holder order) farthest from the model edge projected at
+    ``pose``: its index and the larger distance (ideal px) of the model edge's two ends from
+    the line; ``(-1, 0.0)`` without seen lines."""
+    L = np.asarray(features.lines_ideal, float)
+    seen = np.asarray(features.lines_visible, bool) & np.isfinite(L).all(axis=1)
+    if not seen.any():
+        return -1, 0.0
+    c = np.asarray(holder.corners_mm, float)
+    P = np.column_stack([c, np.zeros(len(c))])
+    X = P @ pose.R.T + pose.t_mm
+    q = (X[:, :2] / X[:, 2:]) @ camera.K[:2, :2].T + camera.K[:2, 2]
+    a, b = q, np.roll(q, -1, axis=0)                 # edge k runs from corner k to k + 1
+    n = L[:, :2] / np.linalg.norm(L[:, :2], axis=1, keepdims=True)
+    off = L[:, 2] / np.linalg.norm(L[:, :2], axis=1)
+    d = np.maximum(np.abs(np.sum(n * a, axis=1) + off), np.abs(np.sum(n * b, axis=1) + off))
+    d = np.where(seen, d, -np.inf)
+    k = int(np.argmax(d))
+    return k, float(d[k])
 
 
 def measure(image, camera: Camera | None = None, holder: Holder | None = None,

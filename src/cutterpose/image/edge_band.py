@@ -19,9 +19,12 @@ The fit per segment (a third to a half of one edge, ``n_seg`` per edge):
 * the model ``m(w; r, look)`` is the edge model's blurred profile (its design edge at ``w = 0``)
   for a shape (fillet or 45 deg chamfer) and a photometric variant (``LOOK_VARIANTS``);
 * ``y(w) ~ a + b m(w - shift)``, ``b > 0``: the grey offset and gain are solved in closed form,
-  ``(r, shift)`` on a grid (coarse over the whole range, then fine round the best), the look is
-  shared by every segment of the image (one material, one light) and chosen by the trimmed sum
-  of the segments' costs.
+  ``(r, shift)`` on a grid (coarse over the whole range on a 0.4 px grid, then fine round the
+  best on 0.2 px with a parabola), the look is shared by every segment of the image (one
+  material, one light) and chosen by the trimmed sum of the segments' costs (on every other
+  segment: the choice needs no more);
+* each segment's shift variance with its radius free, from the Hessian of the cost round its
+  minimum (:func:`_shift_variance`): the pose fit's weights.
 
 The result per segment: the design edge's point ``q + shift n`` (ideal px), the radius, the
 residual RMS, the gain (contrast), and the same for the other plausible looks (their spread is
