@@ -102,3 +102,15 @@ def test_dm_plus_b_refuses_when_the_edges_are_hidden(chamfered):
     m = measure_features(feats, CAM, HOLDER, method="dm+b", limits=LIMITS)
     assert not m.ok
     assert m.pose is None or "band" in m.quality.reason or "budget" in m.quality.reason
+
+
+def test_dm_plus_b_on_the_papers_chain(chamfered):
+    """The band needs only the image and a start: it works behind section 2.1's chain too."""
+    from cutterpose.image import FeatureParams
+
+    pose, r = chamfered
+    m = measure(r.image, CAM, HOLDER, method="dm+b", params=FeatureParams.paper(),
+                limits=LIMITS)
+    assert m.pose is not None, m.quality.reason
+    assert abs(m.pose.dof[5] - pose.dof[5]) < 0.15
+    assert m.to_dict()["features"]["order"] == "contour"

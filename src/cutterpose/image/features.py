@@ -144,7 +144,7 @@ def detect_features(image: np.ndarray, camera: Camera, holder: Holder,
                             primitives=prims, contour_px=contour_px, edge_points_px=edges,
                             roi=roi, roi_score=score, threshold=int(level),
                             refined=params.refine, timings_ms=timings, edge_darkening=dark,
-                            edge_offset_px=off, inward_ideal=inward)
+                            edge_offset_px=off, inward_ideal=inward, image=image)
         except FeatureError as e:  # a hidden corner: the model fit may still see its lines
             msg = str(e)
     else:
