@@ -179,10 +179,17 @@ class Measurement:
             return []
         a, b, g, x, y, z = self.pose.dof
         s = self.std_dof
-        return [f"alpha {a:7.3f}  beta {b:7.3f}  gamma {g:7.3f} deg   "
-                f"(std {s[0]:.3f} {s[1]:.3f} {s[2]:.3f})",
-                f"X {x:8.2f}  Y {y:8.2f}  Z {z:8.2f} mm   (std {s[3]:.3f} {s[4]:.3f} {s[5]:.3f})",
-                f"RMS residual {self.quality.rms_px:.3f} px"]
+        lines = [f"alpha {a:7.3f}  beta {b:7.3f}  gamma {g:7.3f} deg   "
+                 f"(std {s[0]:.3f} {s[1]:.3f} {s[2]:.3f})",
+                 f"X {x:8.2f}  Y {y:8.2f}  Z {z:8.2f} mm   (std {s[3]:.3f} {s[4]:.3f} {s[5]:.3f})",
+                 f"RMS residual {self.quality.rms_px:.3f} px"]
+        band = None if self.estimate is None else self.estimate.info.get("band")
+        if band is not None:
+            d = band.to_dict()
+            lines.append(f"edge break: {d['shape']}, radius {d['radius_median_mm']:.2f} mm "
+                         f"(median of {d['segments_valid']} segments, {d['segments_used']} "
+                         "used for the pose)")
+        return lines
 
     def to_dict(self) -> dict:
         """The JSON object of ``cutterpose measure --json``."""
