@@ -61,6 +61,8 @@ ROBUST_SCALE = 2.0
 #: the least std (px) a segment's design-edge point is given (the variance from the profile
 #: fit knows the noise, not the model's local error)
 MIN_SD_PX = 0.1
+#: sampling + fit passes (the last on all segments, the first on half)
+PASSES = 2
 #: segments per edge and normals per segment sampled across the band
 SEGMENTS_PER_EDGE = 4
 POSITIONS_PER_SEGMENT = 12
@@ -167,11 +169,12 @@ def _look_spread(fit: BandFit, X, n_img, K, dof, valid) -> np.ndarray:
 
 
 def measure_band(image, camera: Camera, holder: Holder, start: PoseEstimate,
-                 edges_seen=None, shapes=("round", "chamfer"), max_passes: int = 2
+                 edges_seen=None, shapes=("round", "chamfer"), max_passes: int | None = None
                  ) -> PoseEstimate:
     """``dm+b`` from a start pose (module doc). A falsy estimate with the reason when the band
     cannot be measured."""
     t0 = time.perf_counter()
+    max_passes = PASSES if max_passes is None else max_passes
     if not start:
         return PoseEstimate.failure("dm+b", f"start: {start.reason}")
     dof = Pose(start.R_cam_holder, start.t_cam_holder_mm).dof
