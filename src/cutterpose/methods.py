@@ -25,10 +25,24 @@ __all__ = ["Method", "get_method", "available_methods", "parse_methods"]
 
 @dataclass(frozen=True)
 class Method:
+    """A pose method: ``solve(points_px, camera, model) -> PoseEstimate``.
+
+    ``searches_range``: correspondence-free and searching a motion range (``dm``, ``dm+``,
+    ``dm-paper``); its ``solve`` also takes the keywords ``motion_range`` (the rig's working
+    range), ``start`` (a close ``(R, t_mm)`` or None), ``partial`` (some corners missing or
+    spurious) and ``close_start_rms_px``. ``base`` and ``refine``: a method that refines the
+    pose of ``base`` with more than the corners (the edge model, the image):
+    ``refine(start, features, camera, model, shapes) -> PoseEstimate`` (``dm+r``, ``dm+b``;
+    their ``solve`` on corners alone is the registered fallback).
+    """
+
     name: str
     solve: Callable
     needs_correspondences: bool = True
     description: str = ""
+    searches_range: bool = False
+    base: str | None = None
+    refine: Callable | None = None
 
 
 # name -> (module, attribute, needs_correspondences, description)
@@ -58,6 +72,16 @@ _ENTRIES: dict[str, tuple[str, str, bool, str]] = {
              "pose (needs the image)"),
 }
 
+#: how the pipeline runs a method beyond ``solve`` (:class:`Method`): range search, or the
+#: refinement ``(module, attribute)`` of a base method's pose
+_PIPELINE: dict[str, dict] = {
+    "dm": {"searches_range": True},
+    "dm+": {"searches_range": True},
+    "dm-paper": {"searches_range": True},
+    "dm+r": {"base": "dm+", "refine": ("cutterpose.solvers.edge_radius", "refine_features")},
+    "dm+b": {"base": "dm+", "refine": ("cutterpose.solvers.edge_band", "refine_features")},
+}
+
 
 def available_methods() -> list[str]:
     """Names of the registered methods whose module is importable."""
@@ -84,11 +108,15 @@ def get_method(name: str) -> Method:
         raise InputError(f"unknown method {name!r}; choose from {', '.join(_ENTRIES)} "
                          "(or <pnp-method>+lm)")
     mod, attr, corr, desc = _ENTRIES[name]
+    extra = dict(_PIPELINE.get(name, {}))
     try:
         fn = getattr(importlib.import_module(mod), attr)
+        if "refine" in extra:
+            extra["refine"] = getattr(importlib.import_module(extra["refine"][0]),
+                                      extra["refine"][1])
     except (ImportError, AttributeError) as e:
         raise InputError(f"method {name!r} is not available in this build ({e})") from None
-    return Method(name, fn, corr, desc)
+    return Method(name, fn, corr, desc, **extra)
 
 
 def parse_methods(spec: str) -> list[Method]:

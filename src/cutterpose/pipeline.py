@@ -354,119 +354,50 @@ def _pose_from_homography(H: np.ndarray, camera: Camera):
     return (R, t) if np.all(np.isfinite(R)) and t[2] > 0 else None
 
 
-def _dm_plus_close(corners_px: np.ndarray, camera: Camera, holder: Holder,
-                   limits: QualityLimits, H: np.ndarray, complete: bool) -> PoseEstimate:
-    """dm+ straight from the pose of the field chain's outline homography (issue 13): its
-    continuous refinement without DM's grid search, which only serves to bring a far start
-    into the refinement's basin (:func:`~cutterpose.solvers.matching.refine_from_close_start`;
-    same fixpoint). A failure (start not close enough) sends the caller to the full dm+."""
-    from .solvers import matching
-
-    t0 = time.perf_counter()
-    init = _pose_from_homography(H, camera)
-    if init is None:
-        return PoseEstimate.failure("dm+", "no pose from the outline homography")
-    rng = MotionRange(center_dof=limits.range_center_dof,
-                      half_width_dof=limits.range_half_width_dof)
-    est = matching.refine_from_close_start(corners_px, camera, holder, init, motion_range=rng,
-                                           partial=not complete, max_rms_px=limits.max_rms_px)
-    est.method = "dm+"
-    est.time_ms = (time.perf_counter() - t0) * 1e3
-    return est
-
-
 def _solve(method: str, corners_px: np.ndarray, camera: Camera, holder: Holder,
            limits: QualityLimits, order: str = "contour", H=None) -> PoseEstimate:
     """``corners_px``: all 20 in contour order, or (``order="holder"``, field chain) 20 in model
     order with NaN rows for the corners not seen: PnP methods get the seen ones with their
-    model points, the correspondence-free ``dm``/``dm+`` only the seen ones, unordered (their
-    start: the pose of the outline homography ``H`` if given, else the range's centre)."""
+    model points; the range-searching methods (:class:`~cutterpose.methods.Method`,
+    ``searches_range``: ``dm``, ``dm+``, ``dm-paper``) the seen ones, unordered, with the
+    rig's working range and, on the field chain, the pose of the outline homography ``H`` as
+    their start."""
     m = get_method(method)
+    if m.base is not None:
+        raise InputError(f"{method} refines {m.base}'s pose with more than the corners: "
+                         "use measure_features")
     corners_px = np.asarray(corners_px, float)
     seen = np.isfinite(corners_px).all(axis=1)
-    if method == "dm+r":
-        from .solvers.edge_radius import refine_radius
-
-        est = _solve("dm+", corners_px, camera, holder, limits, order, H)
-        ideal = np.full_like(corners_px, np.nan)
-        ideal[seen] = camera.undistort_px(corners_px[seen])
-        # the edge model must predict the rise the line refinement takes: the field chain's
-        # innermost rise, the paper chain's strongest
-        from .image.edge_model import EdgeLook
-
-        look = EdgeLook() if order == "holder" else EdgeLook(innermost=0.0)
-        shapes = {"unknown": ("round", "chamfer"), "round": ("round",),
-                  "chamfer": ("chamfer",)}[limits.edge_shape]
-        return refine_radius(est, ideal, camera, holder, look=look, shapes=shapes,
-                             ordered=order == "holder")
-    if method == "dm+" and order == "holder" and H is not None:
-        est = _dm_plus_close(corners_px[seen], camera, holder, limits, H, seen.all())
-        if est:
-            return est
+    if m.searches_range:
+        rng = MotionRange(center_dof=limits.range_center_dof,
+                          half_width_dof=limits.range_half_width_dof)
+        field = order == "holder"
+        start = _pose_from_homography(H, camera) if field and H is not None else None
+        return m.solve(corners_px[seen] if field else corners_px, camera, holder,
+                       motion_range=rng, start=start, partial=field and not seen.all(),
+                       close_start_rms_px=limits.max_rms_px if field else None)
     if order == "holder" and not seen.all():
         if m.needs_correspondences:
             return m.solve(corners_px[seen], camera, holder.points_holder_mm[seen])
-        if method in ("dm", "dm+", "dm-paper"):
-            from .solvers import matching
-
-            t0 = time.perf_counter()
-            rng = MotionRange(center_dof=limits.range_center_dof,
-                              half_width_dof=limits.range_half_width_dof)
-            init = _pose_from_homography(H, camera) if H is not None else None
-            est = matching.distance_match(corners_px[seen], camera, holder, init,
-                                          motion_range=rng, refine=method == "dm+",
-                                          partial=True)
-            est.method = method
-            est.time_ms = (time.perf_counter() - t0) * 1e3
-            return est
         return PoseEstimate.failure(method, f"needs all {holder.n_corners} corners, "
                                     f"{int(seen.sum())} seen")
     if m.needs_correspondences:
         if order == "holder":
             return m.solve(corners_px, camera, holder)
         return m.solve(order_for_model(corners_px, camera, holder), camera, holder)
-    if method in ("dm", "dm+", "dm-paper"):
-        # the registered dm searches the synthetic range; images come from the real rig's
-        from .solvers import matching, vanishing
-
-        t0 = time.perf_counter()
-        rng = MotionRange(center_dof=limits.range_center_dof,
-                          half_width_dof=limits.range_half_width_dof)
-        # the initial pose searches the synthetic protocol's wide range, widened to cover the
-        # limits' range when that reaches beyond it (an approach from 900 mm)
-        wide = MotionRange()
-        lo = np.minimum(np.subtract(wide.center_dof, wide.half_width_dof), rng.lower)
-        hi = np.maximum(np.add(wide.center_dof, wide.half_width_dof), rng.upper)
-        start = vanishing.initial_pose_paper if method == "dm-paper" else vanishing.initial_pose
-        init = start(corners_px, camera, holder, MotionRange(
-            center_dof=tuple((lo + hi) / 2), half_width_dof=tuple((hi - lo) / 2)))
-        if not init:
-            return PoseEstimate.failure(method, f"initial pose: {init.reason}")
-        est = matching.distance_match(corners_px, camera, holder, init, motion_range=rng,
-                                      refine=method == "dm+")
-        est.method = method
-        est.time_ms = (time.perf_counter() - t0) * 1e3
-        return est
     return m.solve(corners_px, camera, holder)
 
 
-def _solve_band(features: Features, camera: Camera, holder: Holder, limits: QualityLimits
-                ) -> PoseEstimate:
-    """``dm+b``: ``dm+`` for the start, then the band across the edges
-    (:func:`cutterpose.solvers.edge_band.measure_band`)."""
-    from .solvers.edge_band import measure_band
-
-    if features.image is None:
-        return PoseEstimate.failure("dm+b", "the features carry no image to measure the band in")
-    start = _solve("dm+", features.corners_px, camera, holder, limits, features.order,
+def _refine(method: str, features: Features, camera: Camera, holder: Holder,
+            limits: QualityLimits) -> PoseEstimate:
+    """A method that refines its base method's pose with more than the corners
+    (``Method.refine``: ``dm+r`` the edge radius, ``dm+b`` the bands in the image)."""
+    m = get_method(method)
+    start = _solve(m.base, features.corners_px, camera, holder, limits, features.order,
                    features.H_ideal_holder)
     shapes = {"unknown": ("round", "chamfer"), "round": ("round",),
               "chamfer": ("chamfer",)}[limits.edge_shape]
-    seen = features.lines_visible if features.order == "holder" else None
-    est = measure_band(features.image, camera, holder, start, seen, shapes)
-    if est:
-        est.info["start"] = start
-    return est
+    return m.refine(start, features, camera, holder, shapes)
 
 
 def ambiguity_ratio(est: PoseEstimate, corners_ideal_px, camera: Camera, holder: Holder,
@@ -542,8 +473,8 @@ def measure_features(features: Features, camera: Camera, holder: Holder, method:
     timings = dict(features.timings_ms)
     t0 = time.perf_counter()
     try:
-        if method == "dm+b":
-            est = _solve_band(features, camera, holder, limits)
+        if get_method(method).base is not None:
+            est = _refine(method, features, camera, holder, limits)
         else:
             est = _solve(method, features.corners_px, camera, holder, limits, features.order,
                          features.H_ideal_holder)

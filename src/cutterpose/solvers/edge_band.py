@@ -49,7 +49,8 @@ from ..geometry.pose import Pose, rotation_from_euler_deg
 from ..image.edge_band import BandFit, fit_band, sample_band
 from .estimate import PoseEstimate
 
-__all__ = ["BandPose", "fit_pose_design_points", "measure_band", "solve", "SHIFT_FLOOR_MM"]
+__all__ = ["BandPose", "fit_pose_design_points", "measure_band", "refine_features", "solve",
+           "SHIFT_FLOOR_MM"]
 
 #: the band model's systematic uncertainty as a uniform outward shift of the design edge (mm
 #: in the face plane, 1 sigma): on the development pbr sets at ~4 px/mm the design edge of
@@ -232,6 +233,19 @@ def measure_band(image, camera: Camera, holder: Holder, start: PoseEstimate,
     rms = float(np.sqrt(np.mean(r[inl] ** 2))) if inl.any() else math.nan
     est = PoseEstimate("dm+b", R, dof[3:].copy(), residual_px=rms,
                        time_ms=(time.perf_counter() - t0) * 1e3, info={"band": band})
+    return est
+
+
+def refine_features(start: PoseEstimate, features, camera: Camera, model: Holder,
+                    shapes=("round", "chamfer")) -> PoseEstimate:
+    """``dm+b`` in the pipeline (:class:`~cutterpose.methods.Method` ``refine``): the bands of
+    the edges the image processing saw, in the image it saw them in, from ``start``."""
+    if features.image is None:
+        return PoseEstimate.failure("dm+b", "the features carry no image to measure the band in")
+    seen = features.lines_visible if features.order == "holder" else None
+    est = measure_band(features.image, camera, model, start, seen, shapes)
+    if est:
+        est.info["start"] = start
     return est
 
 

@@ -60,7 +60,8 @@ from ..image.edge_model import (
 )
 from .estimate import PoseEstimate
 
-__all__ = ["RadiusPrior", "RadiusFit", "fit_pose_radius", "refine_radius", "solve",
+__all__ = ["RadiusPrior", "RadiusFit", "fit_pose_radius", "refine_radius", "refine_features",
+           "solve",
            "fisher_pose_radius", "crlb_pose_radius", "model_offset_spread"]
 
 
@@ -455,6 +456,21 @@ def refine_radius(est: PoseEstimate, ideal_px: np.ndarray, camera: Camera, holde
                         residual_px=fit.rms_px, candidates=est.candidates,
                         time_ms=(est.time_ms if math.isfinite(est.time_ms) else 0.0)
                         + (time.perf_counter() - t0) * 1e3, info=info)
+
+
+def refine_features(start: PoseEstimate, features, camera: Camera, model: Holder,
+                    shapes=("round",)) -> PoseEstimate:
+    """``dm+r`` in the pipeline (:class:`~cutterpose.methods.Method` ``refine``): the radius
+    fit from ``start`` (the ``dm+`` pose) on the detected corners. The edge model predicts the
+    rise the line refinement takes: the field chain's innermost rise (``order == "holder"``),
+    the paper chain's strongest."""
+    corners = np.asarray(features.corners_px, float)
+    seen = np.isfinite(corners).all(axis=1)
+    ideal = np.full_like(corners, np.nan)
+    ideal[seen] = camera.undistort_px(corners[seen])
+    field = features.order == "holder"
+    look = EdgeLook() if field else EdgeLook(innermost=0.0)
+    return refine_radius(start, ideal, camera, model, look=look, shapes=shapes, ordered=field)
 
 
 def solve(points_px, camera: Camera, model: Holder) -> PoseEstimate:
