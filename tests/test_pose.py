@@ -88,3 +88,18 @@ def test_nearest_rotation():
     Q = nearest_rotation(M)
     assert np.allclose(Q.T @ Q, np.eye(3)) and np.linalg.det(Q) == pytest.approx(1.0)
     assert geodesic_deg(Q, R) < 0.2
+
+
+def test_pose_from_plane_homography_recovers_the_pose():
+    """Zhang's extrinsics from H ~ K [r1 r2 t], whatever the homography's scale and sign; None
+    for a degenerate one."""
+    from cutterpose.geometry.pose import pose_from_plane_homography
+
+    K = np.array([[2400.0, 0.0, 2050.0], [0.0, 2400.0, 1500.0], [0.0, 0.0, 1.0]])
+    P = Pose.from_euler(4, -7, 20, 15, -8, 640)
+    H = K @ np.column_stack([P.R[:, 0], P.R[:, 1], P.t_mm])
+    for scale in (1.0, -3e-4, 250.0):
+        R, t = pose_from_plane_homography(scale * H, K)
+        np.testing.assert_allclose(R, P.R, atol=1e-12)
+        np.testing.assert_allclose(t, P.t_mm, atol=1e-9)
+    assert pose_from_plane_homography(np.zeros((3, 3)), K) is None

@@ -52,7 +52,7 @@ from .errors import CutterposeError, FeatureError, ImageError, InputError
 from .frames import load_frame
 from .geometry.camera import Camera, default_camera
 from .geometry.holder import Holder, default_holder
-from .geometry.pose import Pose, pixel_jacobian, rotation_from_euler_deg
+from .geometry.pose import Pose, pixel_jacobian, pose_from_plane_homography, rotation_from_euler_deg
 from .geometry.working_range import MotionRange
 from .image import FeatureParams, Features, detect_features
 from .methods import get_method
@@ -340,20 +340,6 @@ def pose_std(pose: Pose, corners_ideal_px: np.ndarray, camera: Camera, holder: H
     return np.sqrt(np.clip(np.diag(cov), 0, None)), r
 
 
-def _pose_from_homography(H: np.ndarray, camera: Camera):
-    """``(R, t_mm)`` of a homography holder plane (mm) -> ideal px, ``H ~ K [r1 r2 t]``
-    (Zhang 2000, section 3.1), the rotation made orthonormal; None if degenerate."""
-    from .geometry.pose import nearest_rotation
-
-    M = np.linalg.solve(camera.K, np.asarray(H, float))
-    lam = 2.0 / (np.linalg.norm(M[:, 0]) + np.linalg.norm(M[:, 1]))
-    if M[2, 2] * lam < 0:
-        lam = -lam
-    r1, r2, t = M[:, 0] * lam, M[:, 1] * lam, M[:, 2] * lam
-    R = nearest_rotation(np.column_stack([r1, r2, np.cross(r1, r2)]))
-    return (R, t) if np.all(np.isfinite(R)) and t[2] > 0 else None
-
-
 def _solve(method: str, corners_px: np.ndarray, camera: Camera, holder: Holder,
            limits: QualityLimits, order: str = "contour", H=None) -> PoseEstimate:
     """``corners_px``: all 20 in contour order, or (``order="holder"``, field chain) 20 in model
@@ -372,7 +358,7 @@ def _solve(method: str, corners_px: np.ndarray, camera: Camera, holder: Holder,
         rng = MotionRange(center_dof=limits.range_center_dof,
                           half_width_dof=limits.range_half_width_dof)
         field = order == "holder"
-        start = _pose_from_homography(H, camera) if field and H is not None else None
+        start = pose_from_plane_homography(H, camera.K) if field and H is not None else None
         return m.solve(corners_px[seen] if field else corners_px, camera, holder,
                        motion_range=rng, start=start, partial=field and not seen.all(),
                        close_start_rms_px=limits.max_rms_px if field else None)

@@ -366,18 +366,18 @@ def zhang_init(plate_xy_mm: np.ndarray, points_px: np.ndarray):
 
 
 def _poses_from_homographies(K, Hs):
-    Kinv = np.linalg.inv(K)
+    """Each view's plate pose from its homography (Zhang 2000, 3.1; the shared
+    :func:`~cutterpose.geometry.pose.pose_from_plane_homography`)."""
+    from ..geometry.pose import pose_from_plane_homography
+
     Rs, ts = [], []
     for H in Hs:
-        A = Kinv @ H
-        lam = 1.0 / np.linalg.norm(A[:, 0])
-        if A[2, 2] * lam < 0:  # plate in front of the camera: t_z > 0
-            lam = -lam
-        r1, r2, t = lam * A[:, 0], lam * A[:, 1], lam * A[:, 2]
-        from ..geometry.pose import nearest_rotation
-
-        Rs.append(nearest_rotation(np.stack([r1, r2, np.cross(r1, r2)], axis=1)))
-        ts.append(t)
+        pose = pose_from_plane_homography(H, K)
+        if pose is None:
+            raise DegenerateInputError("a view's homography gives no pose with the plate in "
+                                       "front of the camera")
+        Rs.append(pose[0])
+        ts.append(pose[1])
     return np.array(Rs), np.array(ts)
 
 

@@ -59,6 +59,26 @@ def euler_deg_from_rotation(R) -> np.ndarray:
     return zyx[:, ::-1].reshape(*shape, 3)
 
 
+def pose_from_plane_homography(H, K):
+    """``(R, t)`` of a plane homography ``H ~ K [r1 r2 t]`` (plane ``Z = 0`` -> ideal pixels;
+    ``t`` in the plane's units), or None when degenerate.
+
+    Zhang (2000), section 3.1: ``[r1 r2 t] = lambda K^-1 H`` with ``lambda`` from the mean norm
+    of the first two columns, its sign putting the plane in front (``t_z > 0``), ``r3 = r1 x
+    r2``, the rotation made orthonormal (:func:`nearest_rotation`).
+    """
+    M = np.linalg.solve(np.asarray(K, float), np.asarray(H, float))
+    norm = np.linalg.norm(M[:, 0]) + np.linalg.norm(M[:, 1])
+    if not np.isfinite(norm) or norm <= 0:
+        return None
+    lam = 2.0 / norm
+    if M[2, 2] * lam < 0:
+        lam = -lam
+    r1, r2, t = M[:, 0] * lam, M[:, 1] * lam, M[:, 2] * lam
+    R = nearest_rotation(np.column_stack([r1, r2, np.cross(r1, r2)]))
+    return (R, t) if np.all(np.isfinite(R)) and np.all(np.isfinite(t)) and t[2] > 0 else None
+
+
 def nearest_rotation(M) -> np.ndarray:
     """The rotation closest to ``M`` in Frobenius norm (orthogonal polar factor, det = +1)."""
     M = np.asarray(M, float)
