@@ -72,6 +72,7 @@ from scipy.interpolate import PchipInterpolator
 
 from ..errors import InputError
 from ..geometry.holder import Holder
+from .edges import _neighbours, _run_centroids
 
 __all__ = ["EdgeLook", "EdgeView", "LOOK_VARIANTS", "edge_views", "profiles", "gradient_edge_px",
            "edge_offsets_mm", "OffsetTable", "model_corners_mm", "corner_offset_jacobian",
@@ -385,44 +386,36 @@ def gradient_edge_px(w_px: np.ndarray, blurred: np.ndarray, with_rival: bool = F
     the strongest, its run ending at the valley before the next rise.
     """
     h = w_px[1] - w_px[0]
-    g = np.diff(blurred, axis=-1)
+    g_nd = np.diff(blurred, axis=-1)
     wg = w_px[:-1] + 0.5 * h
-    idx = np.arange(g.shape[-1])
-    if innermost > 0 and g.shape[-1] >= 3:
-        gl = np.concatenate([np.full(g.shape[:-1] + (1,), np.inf), g[..., :-1]], axis=-1)
-        gr = np.concatenate([g[..., 1:], np.full(g.shape[:-1] + (1,), -np.inf)], axis=-1)
-        cand = (g >= gl) & (g > gr) & (g >= innermost * g.max(axis=-1, keepdims=True))
-        j = np.where(cand.any(axis=-1), np.argmax(cand, axis=-1), np.argmax(g, axis=-1))
-        peak = np.take_along_axis(g, j[..., None], axis=-1)
-        half = 0.5 * peak
-        valley = (g <= gl) & (g < gr) & (g < 0.8 * peak)
-        below = (g <= half) | valley
+    shape, G = g_nd.shape[:-1], g_nd.shape[-1]
+    g = g_nd.reshape(-1, G)
+    # the detector's own peak choice and half-maximum run (image.edges): the model must find
+    # the edge the refinement finds
+    if innermost > 0 and G >= 3:
+        gl, gr = _neighbours(g)
+        cand = (g >= gl) & (g > gr) & (g >= innermost * g.max(axis=1)[:, None])
+        j = np.where(cand.any(axis=1), np.argmax(cand, axis=1), np.argmax(g, axis=1))
+        cen, _, left, right = _run_centroids(g, j, gl, gr, positions=wg, bounds=True)
     else:
-        j = np.argmax(g, axis=-1)
-        peak = np.take_along_axis(g, j[..., None], axis=-1)
-        half = 0.5 * peak
-        below = g <= half
-    left = np.where(below & (idx < j[..., None]), idx, -1).max(axis=-1)
-    right = np.where(below & (idx > j[..., None]), idx, g.shape[-1]).min(axis=-1)
-    inside = (idx > left[..., None]) & (idx < right[..., None])
-    wt = np.where(inside, g - half, 0.0)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        cen = (wt * wg).sum(axis=-1) / wt.sum(axis=-1)
-    cen = np.where(peak[..., 0] > 0, cen, np.nan)
+        j = np.argmax(g, axis=1)
+        cen, _, left, right = _run_centroids(g, j, positions=wg, bounds=True)
+    peak = g[np.arange(len(g)), j]
+    cen = np.where(peak > 0, cen, np.nan).reshape(shape)
     if not with_rival:
         return cen
     # the strongest local maximum outside the main rise (its run and 1 px either side)
     pad = int(round(1.0 / h))
+    idx = np.arange(G)
     local = np.zeros(g.shape, bool)
-    local[..., 1:-1] = (g[..., 1:-1] >= g[..., :-2]) & (g[..., 1:-1] > g[..., 2:])
-    away = (idx < left[..., None] - pad) | (idx > right[..., None] + pad)
+    local[:, 1:-1] = (g[:, 1:-1] >= g[:, :-2]) & (g[:, 1:-1] > g[:, 2:])
+    away = (idx < left[:, None].astype(int) - pad) | (idx > right[:, None].astype(int) + pad)
     g2 = np.where(local & away, g, -np.inf)
-    j2 = np.argmax(g2, axis=-1)
-    p2 = np.take_along_axis(g2, j2[..., None], axis=-1)[..., 0]
+    j2 = np.argmax(g2, axis=1)
+    p2 = g2[np.arange(len(g2)), j2]
     with np.errstate(invalid="ignore", divide="ignore"):
-        ratio = np.where(np.isfinite(p2) & (peak[..., 0] > 0), np.clip(p2, 0, None)
-                         / peak[..., 0], 0.0)
-    return cen, wg[j2], ratio
+        ratio = np.where(np.isfinite(p2) & (peak > 0), np.clip(p2, 0, None) / peak, 0.0)
+    return cen, wg[j2].reshape(shape), ratio.reshape(shape)
 
 
 def edge_offsets_mm(radius_mm, view: EdgeView, look: EdgeLook = EdgeLook(),

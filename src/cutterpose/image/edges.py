@@ -156,10 +156,15 @@ def _neighbours(g: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _run_centroids(g: np.ndarray, j: np.ndarray, gl: np.ndarray | None = None,
-                   gr: np.ndarray | None = None):
-    """Centroid (sample index) of ``g - g_j / 2`` over the run round peak ``j`` of each row
-    where ``g > g_j / 2``, stopped at valleys (local minima below 0.8 of the peak) when the
-    neighbours ``gl``, ``gr`` are given; ``ok`` where the run stays inside the row."""
+                   gr: np.ndarray | None = None, positions: np.ndarray | None = None,
+                   bounds: bool = False):
+    """Centroid of ``g - g_j / 2`` over the run round peak ``j`` of each row where
+    ``g > g_j / 2``, stopped at valleys (local minima below 0.8 of the peak) when the
+    neighbours ``gl``, ``gr`` are given; ``ok`` where the run stays inside the row.
+
+    The centroid is in sample indices, or in ``positions`` (G,) when given (the edge model's
+    grid: :func:`cutterpose.image.edge_model.gradient_edge_px`, which must find the same edge
+    as the detector). With ``bounds`` also the run's ``left`` and ``right`` (exclusive)."""
     G = g.shape[1]
     # small integer types: these masks and index arrays are (profiles x samples)
     idx = np.arange(G, dtype=np.int16)
@@ -173,9 +178,11 @@ def _run_centroids(g: np.ndarray, j: np.ndarray, gl: np.ndarray | None = None,
     right = np.where(below & (idx > jj), idx, np.int16(G)).min(axis=1)
     inside = (idx > left[:, None]) & (idx < right[:, None])
     w = np.where(inside, g - half[:, None], 0.0)
+    pos = np.arange(G, dtype=w.dtype) if positions is None else positions.astype(w.dtype)
     with np.errstate(invalid="ignore", divide="ignore"):
-        cen = (w @ np.arange(G, dtype=w.dtype)).astype(float) / w.sum(axis=1)
-    return cen, (left >= 0) & (right < G) & (peak > 0) & np.isfinite(cen)
+        cen = (w @ pos).astype(float) / w.sum(axis=1)
+    ok = (left >= 0) & (right < G) & (peak > 0) & np.isfinite(cen)
+    return (cen, ok, left, right) if bounds else (cen, ok)
 
 
 def refine_lines(image: np.ndarray, roi_origin: np.ndarray, camera: Camera,
