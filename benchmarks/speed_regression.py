@@ -74,7 +74,7 @@ def image_list(cache: Path):
             out.append((name, cam, load))
     for folder in sorted(Path("/").glob(PBR_GLOB.lstrip("/"))):
         truth = folder / "truth.json"
-        if not truth.exists() or any(s in folder.name for s in ("900", "901")):
+        if not truth.exists() or any(s in folder.name for s in ("900", "901", "heldback")):
             continue
         doc = json.loads(truth.read_text())
         pcam = camera_from_dict(doc["camera"])

@@ -5,7 +5,8 @@ Input: folders written by ``cutterpose render-sequence`` (any engine and preset;
 the camera come from their ``truth.json``). For every frame, in this order:
 
 1. ``Tracker.update`` (CPU time of this process around it, and wall clock);
-2. the full measurement ``measure`` (dm+, the tracker's approach parameters and limits), timed
+2. the full measurement ``measure`` (``--method``, default dm+; the tracker's approach
+   parameters and limits), timed
    the same way: its std per DOF is the frame's reference band, its CPU time the denominator of
    the speed ratio.
 
@@ -45,11 +46,12 @@ from cutterpose.tracking import Tracker, TrackParams, approach_limits, approach_
 cv2.setNumThreads(1)
 
 
-def run(seq: Path, with_full: bool = True, track: TrackParams | None = None) -> list[dict]:
+def run(seq: Path, with_full: bool = True, track: TrackParams | None = None,
+        method: str = "dm+") -> list[dict]:
     truth = json.loads((seq / "truth.json").read_text())
     camera = camera_from_dict(truth["camera"])
     holder = holder_from_dict(truth["holder"])
-    tracker = Tracker(camera, holder, filter=True, track=track)
+    tracker = Tracker(camera, holder, method, filter=True, track=track)
     params, limits = approach_params(camera), approach_limits()
     rows = []
     for e in truth["images"]:
@@ -67,7 +69,7 @@ def run(seq: Path, with_full: bool = True, track: TrackParams | None = None) -> 
         row |= {f"err_{n}": v for n, v in zip(DOF_NAMES, err)}
         if with_full:
             c0 = time.process_time()
-            m = measure(img, camera, holder, "dm+", params, limits)
+            m = measure(img, camera, holder, method, params, limits)
             row["full_cpu_ms"] = (time.process_time() - c0) * 1e3
             row["full_ok"] = bool(m.ok)
             ferr = (pose_errors(R, t, m.pose.R, m.pose.t_mm).dof[0] if m.pose is not None
@@ -177,13 +179,16 @@ def main() -> int:
     ap.add_argument("sequences", nargs="+", type=Path)
     ap.add_argument("--out", type=Path, default=Path("results/track_field"))
     ap.add_argument("--no-full", action="store_true", help="skip the full measurement")
+    ap.add_argument("--method", default="dm+", help="the tracker's and the reference full "
+                    "measurement's pose method (dm+b: the design edge, the tracked frames "
+                    "carry its correction)")
     ap.add_argument("--track", action="append", default=[], metavar="NAME=VALUE",
                     help="a TrackParams field (repeatable), e.g. max_rms_px=0.5")
     a = ap.parse_args()
     tp = TrackParams(**{k: float(v) if "." in v else int(v)
                         for k, v in (x.split("=", 1) for x in a.track)})
     for seq in a.sequences:
-        rows = run(seq, not a.no_full, tp)
+        rows = run(seq, not a.no_full, tp, a.method)
         out = a.out / seq.name
         out.mkdir(parents=True, exist_ok=True)
         keys = list(dict.fromkeys(k for r in rows for k in r))

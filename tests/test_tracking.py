@@ -212,3 +212,24 @@ def test_tracker_falls_back_when_too_few_edges_are_seen(field_sequence):
     assert r.mode != "track"
     assert "edges seen" in r.fallback_reason or "less well" in r.fallback_reason, \
         r.fallback_reason
+
+
+def test_tracker_carries_the_band_correction():
+    """With dm+b as the full measurement, the tracked frames follow the edges dm+ saw (the
+    innermost rise of the broken edge) and carry dm+b's correction to the design edge: their
+    depth error is smaller than that of the edges they track."""
+    from cutterpose.geometry.camera import default_camera
+    from cutterpose.render.analytic import preset, render_holder
+
+    cam, hol = default_camera("table1"), default_holder()
+    poses = [Pose.from_euler(2, -3, 1, 5, -4, z) for z in (624.0, 621.0, 618.0)]
+    frames = [render_holder(p, cam, hol, preset("new"), seed=11, noise_seed=k).image
+              for k, p in enumerate(poses)]
+    tracker = Tracker(cam, hol, method="dm+b")
+    results = [tracker.update(f) for f in frames]
+    assert [r.mode for r in results] == ["full", "track", "track"]
+    assert tracker._break is not None
+    for r, p in zip(results[1:], poses[1:]):
+        design = abs(r.pose.dof[5] - p.dof[5])
+        edges = abs((r.pose @ tracker._break.inverse()).dof[5] - p.dof[5])
+        assert edges > 0.1 and design < 0.5 * edges

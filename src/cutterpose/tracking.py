@@ -70,6 +70,7 @@ from .geometry.holder import Holder, default_holder
 from .geometry.pose import Pose, pixel_jacobian
 from .image import FeatureParams, as_grey_u8
 from .image.edges import intersect_consecutive, robust_edge_lines
+from .methods import get_method
 from .pipeline import DOF_NAMES, Measurement, QualityLimits, measure
 
 __all__ = ["TrackParams", "TrackResult", "Tracker", "PoseFilter", "approach_limits",
@@ -286,7 +287,9 @@ class Tracker:
     Parameters
     ----------
     camera, holder : defaults: the Table 1 camera and ``holder.json``.
-    method : the full measurement's pose method (first frame and fall-backs).
+    method : the full measurement's pose method (first frame and fall-backs). With ``dm+b``
+        the tracked frames carry its correction from the edges tracked (the innermost rise,
+        ``dm+``'s start) to the design edge, measured at the last full measurement.
     params, limits : the full measurement's image parameters and quality limits (default: an
         approach from 940 to 580 mm, :func:`approach_params` and :func:`approach_limits`).
     track : :class:`TrackParams`.
@@ -322,6 +325,7 @@ class Tracker:
 
     def reset(self) -> None:
         """Forget the past: the next frame is measured in full."""
+        self._break: Pose | None = None   # the design edge relative to the tracked edges
         self._last: Pose | None = None
         self._prev: Pose | None = None   # the pose before _last, when both were consecutive
         self._rms_ref = 0.0   # corner RMS of the last accepted full measurement (px)
@@ -349,6 +353,8 @@ class Tracker:
                     reason, res = res, None
             if res is not None:
                 self._prev, self._last = self._last, res.pose
+                if self._break is not None:
+                    res.pose = res.pose @ self._break
                 res.timings_ms = timings | {"total": (time.perf_counter() - t0) * 1e3}
                 self._filter(res, "")
                 return res
@@ -358,7 +364,18 @@ class Tracker:
         timings["full"] = (time.perf_counter() - t1) * 1e3
         self._prev = None   # the velocity is unknown after a fall-back
         if m.ok:
-            self._last = m.pose
+            # a method that refines dm+'s pose with more than the corners (dm+b: the design
+            # edge from the bands): the tracker follows the edges the corners come from (the
+            # innermost rise), so it starts from the pose those corners give near the design
+            # pose and carries the correction between the two, in the holder frame (a broken
+            # edge's offset is the holder's, not the view's)
+            inner = self._edge_pose(img, k, m) if get_method(self.method).base else None
+            if inner is not None:
+                self._break = inner.inverse() @ m.pose
+                self._last = inner
+            else:
+                self._break = None
+                self._last = m.pose
             self._rms_ref = float(m.quality.rms_px) if np.isfinite(m.quality.rms_px) else 0.0
             res = TrackResult(k, "full", m.pose, m.std_dof, True, reason,
                               rms_px=m.quality.rms_px, corners_px=m.corners_px, measurement=m)
@@ -372,6 +389,17 @@ class Tracker:
                 res.filter_reset = "lost"
         res.timings_ms = timings | {"total": (time.perf_counter() - t0) * 1e3}
         return res
+
+    def _edge_pose(self, img: np.ndarray, k: int, m) -> Pose | None:
+        """The pose the tracker's own edges give in this frame, predicted from the measured
+        pose (the innermost rise of a broken edge, as tracking will see it); None if that
+        tracking fails its checks."""
+        self._last, self._prev = m.pose, None
+        try:
+            res = self._track(img, k, {})
+        except CutterposeError:
+            return None
+        return None if isinstance(res, str) or res is None else res.pose
 
     def _filter(self, res: TrackResult, force: str) -> None:
         if self.filter is not None and res.pose is not None:
