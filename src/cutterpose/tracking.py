@@ -369,14 +369,18 @@ class Tracker:
             # innermost rise), so it starts from the pose those corners give near the design
             # pose and carries the correction between the two, in the holder frame (a broken
             # edge's offset is the holder's, not the view's)
-            inner = self._edge_pose(img, k, m) if get_method(self.method).base else None
+            refines = get_method(self.method).base is not None
+            start = m.estimate.info.get("start") if refines and m.estimate else None
+            # the residual the tracked edges are held to: the corners' (dm+'s, for dm+b)
+            rms = start.residual_px if start is not None else m.quality.rms_px
+            self._rms_ref = float(rms) if np.isfinite(rms) else 0.0
+            inner = self._edge_pose(img, k, m) if refines else None
             if inner is not None:
                 self._break = inner.inverse() @ m.pose
                 self._last = inner
             else:
                 self._break = None
                 self._last = m.pose
-            self._rms_ref = float(m.quality.rms_px) if np.isfinite(m.quality.rms_px) else 0.0
             res = TrackResult(k, "full", m.pose, m.std_dof, True, reason,
                               rms_px=m.quality.rms_px, corners_px=m.corners_px, measurement=m)
             self._filter(res, f"fall-back: {reason}" if k else "first pose")
