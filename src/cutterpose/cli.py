@@ -523,7 +523,9 @@ def track_cmd(
     source: str = typer.Argument(..., help="Folder of frames (sorted by name) or a video."),
     camera: str = typer.Option(None, help="table1 (default), synthetic, or a camera file."),
     holder: str = typer.Option(None, help="Holder JSON file (default: the bundled holder)."),
-    method: str = typer.Option("dm+", help="Pose method of the full measurement."),
+    method: str = typer.Option("dm+", help="Pose method of the full measurement (first frame "
+                               "and fall-backs; dm+b: ~0.5 s, and the tracked frames carry "
+                               "its correction to the design edge of a broken edge)."),
     raw: str = typer.Option(None, "--raw", help="Frames are raw Mono8 files of WIDTHxHEIGHT."),
     filter_: bool = typer.Option(False, "--filter", help="Also report a constant-velocity "
                                  "filtered pose (beside the raw one)."),
