@@ -653,7 +653,11 @@ def _demo_report(m: Measurement, truth: Pose, out: Path) -> str:
         for k, n in enumerate(names):
             lines.append(f"{n:10s} {est[k]:10.4f} {m.std_dof[k]:8.4f} {tru[k]:10.4f} "
                          f"{err[k]:9.4f}")
-        lines.append(f"RMS corner residual {m.quality.rms_px:.3f} px")
+        band = m.estimate.info.get("band") if m.estimate is not None else None
+        what = "edge-segment" if band is not None else "corner"
+        lines.append(f"RMS {what} residual {m.quality.rms_px:.3f} px")
+        if band is not None:
+            lines.append(m.pose_lines()[-1])
     lines.append("time per stage (ms): " + ", ".join(
         f"{k} {v:.0f}" for k, v in m.timings_ms.items()))
     lines.append(f"wrote {out / 'demo_overlay.png'} and {out / 'demo.json'}")

@@ -129,7 +129,9 @@ class QualityOut(_Open):
 
     ok: bool = Field(description="The pose may be used.")
     reason: str = Field(description="Why it was refused (empty when ok).")
-    rms_residual_px: float | None = Field(None, description="RMS corner residual [ideal px].")
+    rms_residual_px: float | None = Field(None, description="RMS residual [ideal px]: of the "
+                                          "corners, or of the edge segments' design-edge "
+                                          "points for dm+b.")
     ambiguity_ratio: float | None = Field(None, description="Best / second-best pose error.")
 
 
