@@ -254,8 +254,11 @@ def match_outline(small: np.ndarray, camera: Camera, holder: Holder, params: Fea
             best = (sc, g, z, (np.array(loc) - origin) * 2)
     _, g0, z0, shift8 = best
     best = None
-    for g in (g0 - 1.5, g0, g0 + 1.5):
-        tpl, origin, H, n_on = _outline_template(camera, holder, s8, g, params.roi_line_px, z0)
+    # several depths (an approach): the coarse scale separates them by ~12 %, so the fine
+    # stage also tries 4 % either side of the coarse depth (one depth: the nominal only)
+    zs = (z0,) if len(params.roi_depths_mm) == 1 else (0.96 * z0, z0, 1.04 * z0)
+    for g, z in [(g, z) for z in zs for g in (g0 - 1.5, g0, g0 + 1.5)]:
+        tpl, origin, H, n_on = _outline_template(camera, holder, s8, g, params.roi_line_px, z)
         th, tw = tpl.shape[:2]
         c0 = np.rint(shift8 + origin).astype(int) - 4  # window's top-left, reduced px
         x0, y0 = max(c0[0], 0), max(c0[1], 0)
