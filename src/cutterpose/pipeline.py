@@ -502,10 +502,13 @@ def measure_features(features: Features, camera: Camera, holder: Holder, method:
     amb = ambiguity_ratio(est, features.corners_ideal_px, camera, holder,
                           order=features.order)
     q = _verdict(est, std, r, limits, amb, bias, offset_px, budget)
-    if q.ok and pose is not None and method != "dm+b" and features.order == "holder":
+    if (q.ok and pose is not None and get_method(method).base is None
+            and features.order == "holder"):
         # the corners may fit a wrong pose when few are seen (dm/dm+ need no correspondences):
-        # every seen edge, with or without its corners, must lie on the model at the pose
-        # (dm+b fits the edges themselves, through their bands: its residuals say so)
+        # every seen edge, with or without its corners, must lie on the model at the pose.
+        # A refining method's pose is the design edge's, which the seen (innermost) edges are
+        # offset from by the break: its own residuals judge it (dm+r's model corners, dm+b's
+        # band points)
         k, off = worst_line_residual(pose, features, camera, holder)
         if off > limits.max_corner_residual_px:
             q.ok, q.reason = False, (f"pocket edge {k} is {off:.1f} px off the model at this "
