@@ -49,6 +49,7 @@ from dataclasses import dataclass, field, replace
 
 import cv2
 import numpy as np
+from numpy.lib.stride_tricks import sliding_window_view
 
 from ..errors import InputError
 from ..geometry.camera import Camera
@@ -143,7 +144,6 @@ def sample_band(image: np.ndarray, camera: Camera, holder: Holder, R_cam_holder,
     img = np.asarray(image)
     if img.ndim != 2:
         raise InputError("sample_band needs a grey image")
-    img = img.astype(np.float32, copy=False)
     R = np.asarray(R_cam_holder, float)
     t = np.asarray(t_cam_holder_mm, float).reshape(3)
     K = camera.K
@@ -172,11 +172,36 @@ def sample_band(image: np.ndarray, camera: Camera, holder: Holder, R_cam_holder,
     nrm *= np.sign(np.sum(nrm * (qo - q), axis=-1))[..., None]
     a_s_seg = np.linalg.norm(qo - q, axis=-1).mean(axis=1)
     w = np.arange(-inner_px, a_s_seg.max() * r_max_mm + 8.0 + step_px / 2, step_px)
-    pts = q[:, :, None, :] + w[None, None, :, None] * nrm[:, :, None, :]      # (S, P, G, 2)
-    obs = camera.distort_px(pts.reshape(-1, 2)).reshape(pts.shape).astype(np.float32)
-    vals = cv2.remap(img, obs[..., 0].reshape(-1, len(w)), obs[..., 1].reshape(-1, len(w)),
-                     cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=np.nan)
-    vals = vals.reshape(pts.shape[:3])
+    # each normal is a straight line in ideal pixels and a gently curved one in observed
+    # pixels: the distortion at its two ends and middle, then the parabola through them
+    # (within ~1e-6 px of distorting every sample over the band's ~50 px)
+    w3 = np.array([w[0], 0.5 * (w[0] + w[-1]), w[-1]])
+    ends = camera.distort_px((q[:, :, None, :] + w3[None, None, :, None] * nrm[:, :, None, :])
+                             .reshape(-1, 2)).reshape(q.shape[:2] + (3, 2))   # (S, P, 3, 2)
+    # only the samples' bounding box is converted to float (the image is 12 MP, the band a
+    # few percent of it; the parabolas bulge < 0.1 px past their ends); outside the image the
+    # samples are NaN
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)          # all NaN: no box
+        box = [(np.nanmin(ends[..., i]), np.nanmax(ends[..., i])) for i in (0, 1)]
+    if not np.all(np.isfinite(box)):
+        box = [(0.0, 0.0), (0.0, 0.0)]
+    x0, y0 = (int(np.clip(np.floor(b[0]) - 2, 0, m)) for b, m in zip(box, img.shape[::-1]))
+    x1, y1 = (int(np.clip(np.ceil(b[1]) + 3, 0, m)) for b, m in zip(box, img.shape[::-1]))
+    crop = img[y0:max(y1, y0 + 1), x0:max(x1, x0 + 1)].astype(np.float32)
+    if y1 <= y0 or x1 <= x0:
+        crop[:] = np.nan
+    u = ((w - w3[0]) / (w3[2] - w3[0])).astype(np.float32)                  # 0 .. 1
+    maps = []
+    for i, o in ((0, x0), (1, y0)):
+        e0, e1, e2 = (ends[:, :, k, i].reshape(-1, 1) for k in range(3))
+        d1, d2 = e1 - e0, e2 - 2 * e1 + e0
+        maps.append(((e0 - o).astype(np.float32) + u * (2 * d1 - d2).astype(np.float32))
+                    + (u * u) * (2 * d2).astype(np.float32))
+    mx, my = maps
+    vals = cv2.remap(crop, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
+                     borderValue=np.nan)
+    vals = vals.reshape(q.shape[:2] + (len(w),))
     vals[~seen[seg_edge]] = np.nan
     # edges not seen are all NaN: their medians are NaN (and marked invalid below)
     with np.errstate(invalid="ignore"), warnings.catch_warnings():
@@ -195,12 +220,17 @@ def sample_band(image: np.ndarray, camera: Camera, holder: Holder, R_cam_holder,
 
 
 def _median_rows(v: np.ndarray) -> np.ndarray:
-    """NaN-median over axis 1 of (S, P, G): the plain median for segments without NaN (most;
-    several times faster), the NaN-aware one for the others."""
-    out = np.median(v, axis=1)
-    bad = np.isnan(out).any(axis=1)
-    if bad.any():
-        out[bad] = np.nanmedian(v[bad], axis=1)
+    """NaN-median over axis 1 of (S, P, G), NaN where a column has no number.
+
+    From one sort (several times faster than np.nanmedian and np.median's partition along a
+    middle axis): NaN sort last, so a column's median sits at its count of numbers."""
+    srt = np.sort(v, axis=1)
+    P = v.shape[1]
+    cnt = np.count_nonzero(~np.isnan(v), axis=1)[:, None, :]                 # (S, 1, G)
+    lo = np.take_along_axis(srt, np.clip((cnt - 1) // 2, 0, P - 1), axis=1)[:, 0]
+    hi = np.take_along_axis(srt, np.clip(cnt // 2, 0, P - 1), axis=1)[:, 0]
+    out = 0.5 * (lo + hi)
+    out[cnt[:, 0] == 0] = np.nan
     return out
 
 
@@ -233,116 +263,159 @@ class BandFit:
         return p.points_ideal_px + lf.shift_px[:, None] * p.normals_ideal
 
 
-def _segment_models(view: em.EdgeView, look: em.EdgeLook, radii, bp: BandProfiles,
-                    half_width_px: float, step_px: float = STEP_PX):
-    """(S, M, G0) model profiles of the segments (interpolated between the edge's two ends) on
-    the model grid (step ``step_px``), and the grid."""
-    w0, _, bl = em.profiles(radii, view, look, half_width_px=half_width_px, step_px=step_px)
-    k = bp.edge
+class _ModelBank:
+    """The edge model at one pose for the band fit: each look's radius- and blur-free
+    cross-section (:func:`~cutterpose.image.edge_model.cross_section`) is computed once and
+    shared by its scans, blurs and radii."""
+
+    def __init__(self, view: em.EdgeView, grid_px: tuple[float, float]):
+        self.view = view
+        self.grid_px = grid_px
+        self._sections: dict = {}
+
+    def section(self, look: em.EdgeLook) -> em.CrossSection:
+        key = replace(look, blur_sigma_px=0.0, profile_sigma_px=0.0)
+        if key not in self._sections:
+            self._sections[key] = em.cross_section(self.view, look)
+        return self._sections[key]
+
+    def profiles(self, radius_mm, looks, step_px: float):
+        """(w0, [(N, 2, M, G0) per look]) for looks that differ only by their blur."""
+        return em.blurred_profiles(radius_mm, self.view, self.section(looks[0]),
+                                   [(lk.blur_sigma_px, lk.profile_sigma_px) for lk in looks],
+                                   self.grid_px, step_px)
+
+
+def _along_segments(bl: np.ndarray, edge: np.ndarray, frac: np.ndarray) -> np.ndarray:
+    """(S, M, G0) model profiles of segments from the edge ends' ``bl`` (N, 2, M, G0): linear
+    between the edge's first end (corner ``k``, side 1) and its last (corner ``k + 1``,
+    side 0) at the segment's centre ``frac``."""
     n = bl.shape[0]
-    a = bl[k, 1]                      # the edge's first end: corner k, side 1
-    b = bl[(k + 1) % n, 0]            # its last: corner k + 1, side 0
-    f = bp.frac[:, None, None]
-    return w0, (1 - f) * a + f * b
+    f = frac[:, None, None].astype(np.float32)
+    return (1 - f) * bl[edge, 1] + f * bl[(edge + 1) % n, 0]
 
 
 def _scan(Y, models, m0, w_idx, shifts_idx):
     """Cost of ``Y ~ a + b model(w - shift)`` for every segment, radius and shift.
 
-    Y : (S, G) measured; models : (S, M, G0); w_idx : (G,) sample offsets in model steps;
-    shifts_idx : (S, H) or (H,) shifts in model steps. Returns cost, gain (S, M, H)."""
+    Y : (S, G) measured; models : (S, M, G0); w_idx : (G,) consecutive sample offsets in model
+    steps; shifts_idx : (S, H) or (H,) shifts in model steps. Returns cost, gain (S, M, H).
+
+    With ``Yc = Y - mean(Y)`` and the model window ``m`` at a shift, the least-squares gain is
+    ``b = <m, Yc> / |m - mean(m)|^2`` and the cost ``|Yc|^2 - b <m, Yc>``. The windows are
+    gathered whole rows at a time from a sliding view (one copy of the (S, H, M, G) windows, no
+    per-sample index arrays), the window sums of ``m`` and ``m^2`` come from cumulative sums.
+    """
+    S, G = Y.shape
+    M, G0 = models.shape[1:]
     sh = np.asarray(shifts_idx)
     if sh.ndim == 1:
-        sh = np.broadcast_to(sh, (Y.shape[0], len(sh)))
-    idx = np.clip(m0 + w_idx[None, None, :] - sh[:, :, None], 0, models.shape[-1] - 1)
-    S = np.arange(Y.shape[0])[:, None, None, None]
-    M = np.arange(models.shape[1])[None, :, None, None]
-    Mi = models.astype(np.float32)[S, M, idx[:, None, :, :]]              # (S, M, H, G)
-    Mc = Mi - Mi.mean(axis=-1, keepdims=True)
-    Yc = (Y - Y.mean(axis=-1, keepdims=True)).astype(np.float32)[:, None, None, :]
-    num = np.einsum("smhg,smhg->smh", Mc, np.broadcast_to(Yc, Mc.shape))
-    den = np.einsum("smhg,smhg->smh", Mc, Mc)
+        sh = np.broadcast_to(sh, (S, len(sh)))
+    H = sh.shape[1]
+    if np.any(np.diff(w_idx) != 1):
+        raise ValueError("_scan: the samples must be consecutive model steps")
+    start = m0 + int(w_idx[0]) - sh                                         # (S, H)
+    inside = (start >= 0) & (start <= G0 - G)
+    start = np.clip(start, 0, G0 - G)
+    Yc = Y - Y.mean(axis=-1, keepdims=True)
+    # a constant per model row changes neither the gain nor the cost: taking each row's mean
+    # out keeps the float32 window sums clear of cancellation
+    mf = np.asarray(models, dtype=np.float32)
+    mf = mf - mf.mean(axis=-1, keepdims=True)
+    win = sliding_window_view(mf, G, axis=-1)[np.arange(S)[:, None], :, start]  # (S, H, M, G)
+    win = win.reshape(S, H * M, G)
+    rhs = np.stack([Yc.astype(np.float32), np.ones((S, G), np.float32)], axis=-1)
+    prod = np.matmul(win, rhs)                                             # (S, H M, 2)
+    s2 = np.einsum("sng,sng->sn", win, win)
+    num, s1, s2 = (np.asarray(v, np.float64).reshape(S, H, M).transpose(0, 2, 1)
+                   for v in (prod[..., 0], prod[..., 1], s2))              # (S, M, H)
+    den = s2 - s1 * s1 / G
     gain = num / np.maximum(den, 1e-12)
-    cost = np.sum(Yc ** 2, axis=-1) - gain * num
-    return np.where(gain > 0, cost, np.inf), gain
+    cost = np.sum(Yc * Yc, axis=-1)[:, None, None] - gain * num
+    ok = (gain > 0) & inside[:, None, :]
+    return np.where(ok, cost, np.inf), gain
 
 
-def _fit_look(bp: BandProfiles, view: em.EdgeView, look: em.EdgeLook, hw: float,
-              coarse: LookFit | None = None, shift_range_px: float = COARSE_SHIFT_PX
-              ) -> LookFit:
-    """Coarse scan (or, given ``coarse``, the fine scan round it) of one look."""
+def _fit_looks(bp: BandProfiles, bank: _ModelBank, looks, coarse: LookFit | None = None,
+               shift_range_px: float = COARSE_SHIFT_PX) -> list[LookFit]:
+    """Coarse scan (or, given ``coarse``, the fine scan round it) of looks that differ only by
+    their blur (one raw profile for all of them): one :class:`LookFit` per look."""
     h = STEP_PX
     S = len(bp.edge)
     Y = np.where(bp.valid[:, None], bp.values, 0.0)
+    G = len(bp.w_px)
+    out = []
     if coarse is None:
         # every second sample on a model grid of twice the step: the coarse scan needs no more
         hc = 2 * h
         radii = COARSE_RADII_MM
-        w0, models = _segment_models(view, look, radii, bp, hw, step_px=hc)
+        w0, bls = bank.profiles(radii, looks, hc)
         m0 = int(round(-w0[0] / hc))
         keep = slice(0, None, 2)
         w_idx = np.rint(bp.w_px[keep] / hc).astype(int)
         st = max(1, int(round(COARSE_SHIFT_STEP_PX / hc)))
         k = int(round(shift_range_px / COARSE_SHIFT_STEP_PX))
         shifts = st * np.arange(-k, k + 1)
-        cost, gain = _scan(Y[:, keep], models, m0, w_idx, shifts)
-        flat = cost.reshape(S, -1)
+        for look, bl in zip(looks, bls):
+            cost, gain = _scan(Y[:, keep], _along_segments(bl, bp.edge, bp.frac), m0, w_idx,
+                               shifts)
+            flat = cost.reshape(S, -1)
+            jb = np.argmin(flat, axis=1)
+            mi, hi = np.unravel_index(jb, cost.shape[1:])
+            c = flat[np.arange(S), jb] * (G / len(w_idx))
+            g = gain.reshape(S, -1)[np.arange(S), jb]
+            out.append(_look_fit(bp, look, radii[mi], shifts[hi] * hc, c, g,
+                                 np.full(S, np.nan)))
+        return out
+    # per-segment radius windows round the coarse radius; the n_seg segments of an edge share
+    # its two ends, so the edge model runs once per segment index
+    nr = FINE_RADII
+    step = np.where(coarse.radius_mm < 2.0, FINE_STEP_MM, 2 * FINE_STEP_MM)[:, None]
+    base = np.clip(coarse.radius_mm[:, None] - step * (nr // 2), 0, None)
+    rad_seg = base + step * np.arange(nr)[None, :]                             # (S, nr)
+    n = bank.view.a_s.shape[0]
+    per_end = np.zeros((n, 2, nr))
+    S_per_edge = S // n
+    w_idx = np.rint(bp.w_px / h).astype(int)
+    centre = np.rint(coarse.shift_px / h).astype(int)
+    nh = 2 * FINE_SHIFT_STEPS + 1
+    cost_all = np.full((len(looks), S, nr, nh), np.inf)
+    gain_all = np.zeros_like(cost_all)
+    for jseg in range(S_per_edge):
+        sel = np.arange(jseg, S, S_per_edge)                                 # one per edge
+        per_end[:, 1] = rad_seg[sel]
+        per_end[:, 0] = np.roll(rad_seg[sel], 1, axis=0)                     # edge k-1's end
+        w0, bls = bank.profiles(per_end, looks, h)
+        m0 = int(round(-w0[0] / h))
+        shifts = centre[sel][:, None] + np.arange(-FINE_SHIFT_STEPS, FINE_SHIFT_STEPS + 1)
+        for i, bl in enumerate(bls):
+            cost, gain = _scan(Y[sel], _along_segments(bl, bp.edge[sel], bp.frac[sel]), m0,
+                               w_idx, shifts)
+            cost_all[i, sel], gain_all[i, sel] = cost, gain
+    ar = np.arange(S)
+    for look, cost_l, gain_l in zip(looks, cost_all, gain_all):
+        flat = cost_l.reshape(S, -1)
         jb = np.argmin(flat, axis=1)
-        mi, hi = np.unravel_index(jb, cost.shape[1:])
-        r = radii[mi]
-        s = shifts[hi] * hc
-        c = flat[np.arange(S), jb] * (len(bp.w_px) / len(w_idx))
-        g = gain.reshape(S, -1)[np.arange(S), jb]
-        var = np.full(S, np.nan)
-    else:
-        # per-segment radius windows round the coarse radius; the n_seg segments of an edge
-        # share its two ends, so the edge model runs once per segment index
-        nr = FINE_RADII
-        step = np.where(coarse.radius_mm < 2.0, FINE_STEP_MM, 2 * FINE_STEP_MM)[:, None]
-        base = np.clip(coarse.radius_mm[:, None] - step * (nr // 2), 0, None)
-        rad_seg = base + step * np.arange(nr)[None, :]                         # (S, nr)
-        n = view.a_s.shape[0]
-        per_end = np.zeros((n, 2, nr))
-        S_per_edge = S // n
-        w_idx = np.rint(bp.w_px / h).astype(int)
-        cost_all = np.full((S, nr, 2 * FINE_SHIFT_STEPS + 1), np.inf)
-        gain_all = np.zeros_like(cost_all)
-        for jseg in range(S_per_edge):
-            sel = np.arange(jseg, S, S_per_edge)                             # one per edge
-            per_end[:, 1] = rad_seg[sel]
-            per_end[:, 0] = np.roll(rad_seg[sel], 1, axis=0)                 # edge k-1's end
-            w0, bl = em.profiles(per_end, view, look, half_width_px=hw, step_px=STEP_PX)[::2]
-            k = bp.edge[sel]
-            f = bp.frac[sel][:, None, None]
-            models = (1 - f) * bl[k, 1] + f * bl[(k + 1) % n, 0]
-            m0 = int(round(-w0[0] / h))
-            centre = np.rint(coarse.shift_px[sel] / h).astype(int)
-            shifts = centre[:, None] + np.arange(-FINE_SHIFT_STEPS, FINE_SHIFT_STEPS + 1)
-            cost, gain = _scan(Y[sel], models, m0, w_idx, shifts)
-            cost_all[sel], gain_all[sel] = cost, gain
-        flat = cost_all.reshape(S, -1)
-        jb = np.argmin(flat, axis=1)
-        mi, hi = np.unravel_index(jb, cost_all.shape[1:])
-        r = rad_seg[np.arange(S), mi]
-        centre = np.rint(coarse.shift_px / h).astype(int)
+        mi, hi = np.unravel_index(jb, cost_l.shape[1:])
         s = (centre + hi - FINE_SHIFT_STEPS) * h
         # parabola through the shift neighbours at the best radius
-        cm = cost_all[np.arange(S), mi]
-        inner = (hi > 0) & (hi < cm.shape[1] - 1)
-        i0 = np.clip(hi, 1, cm.shape[1] - 2)
-        c_l, c_0, c_r = (cm[np.arange(S), i0 - 1], cm[np.arange(S), i0],
-                         cm[np.arange(S), i0 + 1])
+        cm = cost_l[ar, mi]
+        inner = (hi > 0) & (hi < nh - 1)
+        i0 = np.clip(hi, 1, nh - 2)
+        c_l, c_0, c_r = cm[ar, i0 - 1], cm[ar, i0], cm[ar, i0 + 1]
         with np.errstate(invalid="ignore", divide="ignore"):
             den = c_l - 2 * c_0 + c_r
             dx = np.where(inner & np.isfinite(den) & (den > 0), 0.5 * (c_l - c_r) / den, 0.0)
         s = s + np.clip(dx, -0.5, 0.5) * h
-        c = flat[np.arange(S), jb]
-        g = gain_all.reshape(S, -1)[np.arange(S), jb]
-        var = _shift_variance(cost_all, mi, hi, step[:, 0], h, rad_seg[:, 0] == 0,
-                              len(bp.w_px))
-    G = len(bp.w_px)
+        var = _shift_variance(cost_l, mi, hi, step[:, 0], h, rad_seg[:, 0] == 0, G)
+        out.append(_look_fit(bp, look, rad_seg[ar, mi], s, flat[ar, jb],
+                             gain_l.reshape(S, -1)[ar, jb], var))
+    return out
+
+
+def _look_fit(bp: BandProfiles, look, r, s, c, g, var) -> LookFit:
     c = np.where(bp.valid, c, np.inf)
-    rms = np.sqrt(c / G)
+    rms = np.sqrt(c / len(bp.w_px))
     var = np.where(bp.valid, var, np.inf)
     return LookFit(look, r, s, c, g, rms, _trimmed_total(c, bp.valid), var)
 
@@ -400,30 +473,31 @@ def fit_band(bp: BandProfiles, camera: Camera, holder: Holder, R_cam_holder, t_c
     if not bp.valid.any():
         raise InputError("fit_band: no segment of any edge was sampled")
     looks = band_looks(shapes)
-    hw = float(-bp.w_px[0] if -bp.w_px[0] > bp.w_px[-1] else bp.w_px[-1]) + 12.0
-    view = em.edge_views(R_cam_holder, t_cam_holder_mm, camera.K, holder)
+    # the model grid: the samples, the shifts scanned (<= COARSE_SHIFT_PX + a fine step) and
+    # the blur's reach (<= 7 px) either side
+    grid = (float(bp.w_px[0]) - 14.0, float(bp.w_px[-1]) + 14.0)
+    bank = _ModelBank(em.edge_views(R_cam_holder, t_cam_holder_mm, camera.K, holder), grid)
     if previous is not None:
         # a second pass at a pose that moved little: the looks chosen before, scanned anew
         # (coarse, then fine) only for the chosen and the plausible ones
         out = []
         for lf in [previous.best] + previous.plausible:
-            c = _fit_look(bp, view, lf.look, hw, shift_range_px=2.0)
-            out.append(_fit_look(bp, view, lf.look, hw, c))
+            c = _fit_looks(bp, bank, [lf.look], shift_range_px=2.0)[0]
+            out.append(_fit_looks(bp, bank, [lf.look], c)[0])
         return BandFit(out[0], out[1:], bp)
     # the look is chosen on every other segment (with 40 or more): the coarse scans of all
     # looks are the fit's main cost, and a shared look needs no more
     sub = _subset(bp, np.arange(0, len(bp.edge), 2)) if len(bp.edge) >= 40 else bp
-    coarse = [_fit_look(sub, view, lk, hw) for lk in looks]
+    coarse = [_fit_looks(sub, bank, [lk])[0] for lk in looks]
     totals = np.array([lf.total for lf in coarse])
     order = np.argsort(totals)
     best_i = int(order[0])
     n_eff = max(1, int(np.ceil(0.75 * int(sub.valid.sum()))))
-    full = _fit_look(bp, view, looks[best_i], hw) if sub is not bp else coarse[best_i]
-    # the chosen variant at each blur, then the plausible others at their coarse blur
-    fine = []
-    for b in BLURS_PX:
-        lk = replace(looks[best_i], blur_sigma_px=b)
-        fine.append(_fit_look(bp, view, lk, hw, full))
+    full = _fit_looks(bp, bank, [looks[best_i]])[0] if sub is not bp else coarse[best_i]
+    # the chosen variant at each blur (one raw profile), then the plausible others at the
+    # chosen blur
+    fine = _fit_looks(bp, bank, [replace(looks[best_i], blur_sigma_px=b) for b in BLURS_PX],
+                      full)
     best = min(fine, key=lambda lf: lf.total)
     plausible = []
     for i in order[1:]:
@@ -434,8 +508,8 @@ def fit_band(bp: BandProfiles, camera: Camera, holder: Holder, R_cam_holder, t_c
             continue
         lk = replace(looks[i], blur_sigma_px=best.look.blur_sigma_px)
         if fine_plausible:
-            c = _fit_look(bp, view, lk, hw) if sub is not bp else coarse[i]
-            plausible.append(_fit_look(bp, view, lk, hw, c))
+            c = _fit_looks(bp, bank, [lk])[0] if sub is not bp else coarse[i]
+            plausible.append(_fit_looks(bp, bank, [lk], c)[0])
         else:
             plausible.append(replace(coarse[i], look=lk))
     return BandFit(best, plausible, bp)
