@@ -1,0 +1,146 @@
+"""The band fit's fast numerics against their plain definitions (issue 10 / 13: ``dm+b`` made
+fast must measure what it measured): the window scan, the NaN-median of the normals, the band
+sampling's interpolated distortion and the model profiles computed once for several blurs."""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pytest
+
+from cutterpose.geometry.camera import default_camera
+from cutterpose.geometry.holder import default_holder
+from cutterpose.geometry.pose import Pose, rotation_from_euler_deg
+from cutterpose.image import edge_model as em
+from cutterpose.image.edge_band import (
+    _along_normals,
+    _distorted_normals,
+    _median_rows,
+    _scan,
+    sample_band,
+)
+
+CAM = default_camera("table1")
+HOLDER = default_holder()
+POSE = Pose.from_euler(3, -4, 2, 10, -8, 610)
+
+
+def _scan_by_definition(Y, models, m0, w_idx, shifts):
+    """Least squares ``Y ~ a + b m(w - shift)`` solved per segment, radius and shift."""
+    S, M = models.shape[:2]
+    sh = np.broadcast_to(shifts, (S, len(shifts))) if np.ndim(shifts) == 1 else shifts
+    cost = np.full((S, M, sh.shape[1]), np.inf)
+    for s in range(S):
+        for m in range(M):
+            for h, d in enumerate(sh[s]):
+                x = models[s, m, m0 + w_idx - d].astype(float)
+                A = np.column_stack([np.ones_like(x), x])
+                coef, *_ = np.linalg.lstsq(A, Y[s], rcond=None)
+                if coef[1] > 0:
+                    cost[s, m, h] = np.sum((A @ coef - Y[s]) ** 2)
+    return cost
+
+
+@pytest.mark.parametrize("per_segment_shifts", [False, True])
+def test_scan_matches_least_squares(per_segment_shifts):
+    rng = np.random.default_rng(1)
+    S, M, G0, G = 5, 4, 120, 40
+    w = np.linspace(-3, 3, G0)
+    models = (100 / (1 + np.exp(-w[None, None, :] * rng.uniform(1, 4, (S, M, 1))))
+              + rng.normal(0, 2, (S, M, G0))).astype(np.float32)
+    Y = 30 + 2 * models[:, 0, 35:35 + G] + rng.normal(0, 1, (S, G))
+    m0, w_idx = 60, np.arange(-25, -25 + G)
+    shifts = (rng.integers(-5, 6, (S, 7)) if per_segment_shifts else np.arange(-3, 4))
+    cost, gain = _scan(Y, models, m0, w_idx, shifts)
+    ref = _scan_by_definition(Y, models, m0, w_idx, shifts)
+    fin = np.isfinite(ref)
+    assert np.array_equal(fin, np.isfinite(cost))
+    np.testing.assert_allclose(cost[fin], ref[fin], rtol=1e-4, atol=1e-2)
+    # the true model row at its true shift is the best of every segment
+    assert np.all(np.argmin(cost[:, 0, :], axis=1) >= 0)
+
+
+def test_scan_refuses_gapped_samples():
+    with pytest.raises(ValueError):
+        _scan(np.zeros((1, 3)), np.zeros((1, 1, 20), np.float32), 10, np.array([0, 2, 3]),
+              np.arange(1))
+
+
+def test_median_rows_is_the_nan_median():
+    rng = np.random.default_rng(2)
+    v = rng.normal(size=(30, 12, 25)).astype(np.float32)
+    v[rng.random(v.shape) < 0.3] = np.nan
+    v[4] = np.nan                                  # a segment never sampled
+    v[7, :, 3] = np.nan                            # one column out of the image
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        ref = np.nanmedian(v, axis=1)
+    out = _median_rows(v)
+    assert np.array_equal(np.isnan(out), np.isnan(ref))
+    np.testing.assert_array_equal(out[~np.isnan(ref)], ref[~np.isnan(ref)])
+    odd = v[:, :11]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        np.testing.assert_array_equal(_median_rows(odd), np.nanmedian(odd, axis=1))
+
+
+@pytest.mark.parametrize("kappa_scale", [1.0, 5.0])
+def test_band_samples_on_the_distorted_normals(kappa_scale):
+    """The samples' observed positions (a parabola through three distorted points per
+    normal) against distorting every sample, across the whole image and a camera with 5x the
+    distortion."""
+    from dataclasses import replace
+
+    cam = replace(CAM, kappa_per_m2=CAM.kappa_per_m2 * kappa_scale)
+    rng = np.random.default_rng(4)
+    W, H = cam.image_size_px
+    q = rng.uniform([0, 0], [W, H], (40, 3, 2))
+    ang = rng.uniform(0, 2 * np.pi, (40, 3))
+    nrm = np.stack([np.cos(ang), np.sin(ang)], axis=-1)
+    w = np.arange(-10.0, 40.0, 0.2)
+    mx, my = _along_normals(_distorted_normals(cam, q, nrm, w), w)
+    exact = cam.distort_px((q[:, :, None, :] + w[:, None] * nrm[:, :, None, :])
+                           .reshape(-1, 2)).reshape(40 * 3, len(w), 2)
+    fin = np.isfinite(exact).all(axis=-1)
+    err = np.hypot(mx - exact[..., 0], my - exact[..., 1])[fin]
+    assert err.max() < 2e-3
+
+
+def test_band_sampling_matches_direct_sampling():
+    """On a linear image the band's profile is the image at the middle normal's samples."""
+    H, W = CAM.image_size_px[1], CAM.image_size_px[0]
+    yy, xx = np.mgrid[0:H, 0:W].astype(np.float32)
+    img = 0.01 * xx + 0.02 * yy
+    bp = sample_band(img, CAM, HOLDER, POSE.R, POSE.t_mm, n_seg=2, positions=5)
+    assert bp.valid.all()
+    # along each profile the grey changes by the image gradient projected on the normal
+    slope = np.diff(bp.values, axis=1) / np.diff(bp.w_px)
+    n_obs = bp.normals_ideal
+    expect = 0.01 * n_obs[:, 0] + 0.02 * n_obs[:, 1]
+    np.testing.assert_allclose(np.median(slope, axis=1), expect, atol=2e-3)
+
+
+def test_blurred_profiles_match_profiles():
+    view = em.edge_views(POSE.R, POSE.t_mm, CAM.K, HOLDER)
+    radii = np.array([0.0, 0.4, 1.3, 3.0])
+    for shape in ("round", "chamfer"):
+        looks = [em.EdgeLook(shape=shape, blur_sigma_px=b, profile_sigma_px=0.0)
+                 for b in (0.6, 1.2)]
+        w, blurred = em.blurred_profiles(radii, view, em.cross_section(view, looks[0]),
+                                         [(lk.blur_sigma_px, 0.0) for lk in looks],
+                                         (-30.0, 30.0), 0.2)
+        for lk, b in zip(looks, blurred):
+            w_ref, _, ref = em.profiles(radii, view, lk, half_width_px=30.0, step_px=0.2)
+            np.testing.assert_allclose(w, w_ref, atol=1e-6)
+            np.testing.assert_allclose(b, ref, atol=1e-4 * np.abs(ref).max())
+
+
+def test_rotation_closed_form_is_zyx():
+    from scipy.spatial.transform import Rotation
+
+    a = np.random.default_rng(3).uniform(-90, 90, (50, 3))
+    R = rotation_from_euler_deg(a[:, 0], a[:, 1], a[:, 2])
+    ref = Rotation.from_euler("ZYX", a[:, ::-1], degrees=True).as_matrix()
+    np.testing.assert_allclose(R, ref, atol=1e-14)
+    assert rotation_from_euler_deg(1.0, 2.0, 3.0).shape == (3, 3)
