@@ -28,8 +28,14 @@ from cutterpose.geometry.camera import camera_from_dict
 from cutterpose.geometry.holder import holder_from_dict
 from cutterpose.geometry.pose import Pose
 from cutterpose.image import edge_model as em
-from cutterpose.image.edge_band import (BLURS_PX, BandFit, _fit_looks, _ModelBank, band_looks,
-                                        sample_band)
+from cutterpose.image.edge_band import (
+    BLURS_PX,
+    BandFit,
+    _fit_looks,
+    _ModelBank,
+    band_looks,
+    sample_band,
+)
 from cutterpose.solvers.edge_band import _sd, fit_pose_design_points
 
 
