@@ -65,8 +65,10 @@ def run(seq: Path, with_full: bool = True, track: TrackParams | None = None,
         row = {"frame": e["frame"], "z_mm": t[2], "mode": r.mode, "cpu_ms": cpu,
                "wall_ms": wall, "passes": r.passes, "lines_seen": r.lines_seen,
                "lines_dropped": r.lines_dropped, "rms_px": r.rms_px,
-               "reason": r.fallback_reason}
+               "reason": r.fallback_reason, "anchor": r.anchor}
         row |= {f"err_{n}": v for n, v in zip(DOF_NAMES, err)}
+        if r.anchor and r.anchor != "re-anchored":
+            print(f"  {seq.name} frame {e['frame']}: {r.anchor}", file=sys.stderr)
         if with_full:
             c0 = time.process_time()
             m = measure(img, camera, holder, method, params, limits)
@@ -120,6 +122,15 @@ def summary(name: str, rows: list[dict], truth: dict) -> None:
               f"edges seen median {np.median([r['lines_seen'] for r in tr]):.0f} (min "
               f"{min(r['lines_seen'] for r in tr)}), edges dropped as outliers in "
               f"{sum(r['lines_dropped'] > 0 for r in tr)} frames")
+        an = [r for r in tr if r["anchor"] == "re-anchored"]
+        refused = [r for r in tr if r["anchor"].startswith("re-anchor refused")]
+        if an or refused:
+            plain = np.array([r["cpu_ms"] for r in tr if not r["anchor"]])
+            print(f"  re-anchored on {len(an)} tracked frames "
+                  f"({[r['frame'] for r in an]}), CPU median "
+                  f"{np.median([r['cpu_ms'] for r in an]) if an else np.nan:.0f} ms; refused on "
+                  f"{len(refused)} {[r['frame'] for r in refused]}; the other tracked frames: "
+                  f"CPU median {np.median(plain):.1f} ms (p90 {np.percentile(plain, 90):.1f})")
     reasons: dict[str, list] = {}
     for r in rows[1:]:
         if r["mode"] != "track":
@@ -185,8 +196,13 @@ def main() -> int:
     ap.add_argument("--track", action="append", default=[], metavar="NAME=VALUE",
                     help="a TrackParams field (repeatable), e.g. max_rms_px=0.5")
     a = ap.parse_args()
-    tp = TrackParams(**{k: float(v) if "." in v else int(v)
-                        for k, v in (x.split("=", 1) for x in a.track)})
+    def number(v: str):
+        try:
+            return int(v)
+        except ValueError:
+            return float(v)   # also "inf"
+
+    tp = TrackParams(**{k: number(v) for k, v in (x.split("=", 1) for x in a.track)})
     for seq in a.sequences:
         rows = run(seq, not a.no_full, tp, a.method)
         out = a.out / seq.name

@@ -15,6 +15,7 @@ from cutterpose.errors import InputError
 from cutterpose.geometry.camera_files import save_camera
 from cutterpose.geometry.holder import default_holder
 from cutterpose.geometry.pose import Pose, pose_errors
+from cutterpose.image import FeatureParams
 from cutterpose.pipeline import measure
 from cutterpose.render.sequence import approach_poses, render_sequence
 from cutterpose.tracking import (
@@ -214,25 +215,108 @@ def test_tracker_falls_back_when_too_few_edges_are_seen(field_sequence):
         r.fallback_reason
 
 
-def test_tracker_carries_the_band_correction():
-    """With dm+b as the full measurement, the tracked frames follow the edges dm+ saw (the
-    innermost rise of the broken edge) and carry dm+b's correction to the design edge: their
-    depth error is smaller than that of the edges they track."""
-    from cutterpose.geometry.camera import default_camera
+# ------------------------------------------------------------------------------------------
+# broken edges with dm+b: the tracked edges (the innermost rise) lie off the design edge by
+# offsets that the tracker measures and, as the break's image changes, measures again. A
+# read-out window of the Table 1 sensor (full pixel scale: the band needs ~3-4 px per mm; a
+# quarter of the pixels to render), the holder at ~800 mm
+def _window_camera(width_px: int = 1700, height_px: int = 1000):
+    from cutterpose.geometry.camera import DivisionCamera, default_camera
+
+    full = default_camera("table1")
+    return DivisionCamera(full.focal_length_m, full.kappa_per_m2, full.pixel_size_m,
+                          (width_px / 2 - 0.5, height_px / 2 - 0.5), (width_px, height_px))
+
+
+@pytest.fixture(scope="module")
+def changing_break():
+    """Four frames 800 -> 788 mm; the break's radius is 1 mm in the first and 2.5 mm in the
+    others: its image changes, as it does slowly over a 900 -> 600 mm approach (there the
+    tracked edges' offset by ~0.1 mm, ~0.5 mm of depth; here by ~1 mm of depth at once, so
+    that one short sequence shows it)."""
+    from dataclasses import replace
+
     from cutterpose.render.analytic import preset, render_holder
 
-    cam, hol = default_camera("table1"), default_holder()
-    poses = [Pose.from_euler(2, -3, 1, 5, -4, z) for z in (624.0, 621.0, 618.0)]
-    frames = [render_holder(p, cam, hol, preset("new"), seed=11, noise_seed=k).image
-              for k, p in enumerate(poses)]
-    tracker = Tracker(cam, hol, method="dm+b")
-    results = [tracker.update(f) for f in frames]
-    assert [r.mode for r in results] == ["full", "track", "track"]
-    assert tracker._break is not None
-    for r, p in zip(results[1:], poses[1:]):
-        design = abs(r.pose.dof[5] - p.dof[5])
-        edges = abs((r.pose @ tracker._break.inverse()).dof[5] - p.dof[5])
-        assert edges > 0.1 and design < 0.5 * edges
+    cam, hol = _window_camera(), default_holder()
+    poses = [Pose.from_euler(2, -3, 1, 5, -4, z) for z in (800.0, 796.0, 792.0, 788.0)]
+    frames = [render_holder(p, cam, hol, replace(preset("new"), edge_radius_mm=1.0 if k == 0
+                                                 else 2.5, edge_radius_spread=0.0,
+                                                 aa_samples=4),
+                            seed=11, noise_seed=k).image for k, p in enumerate(poses)]
+    # outline templates at the window's distance (the approach's 600 mm one is larger than it)
+    params = FeatureParams.for_camera(cam, roi_depths_mm=(800.0,))
+    return cam, hol, poses, frames, params
+
+
+def test_offset_polygon_moves_every_edge_along_its_normal():
+    from cutterpose.tracking import offset_polygon_mm
+
+    hol = default_holder()
+    c = np.asarray(hol.corners_mm, float)
+    d = np.linspace(-0.5, 1.0, len(c))
+    q = offset_polygon_mm(c, d)
+    assert q.shape == (len(c), 3) and np.all(q[:, 2] == 0)
+    # every moved edge lies d_k outside the design edge (holder.edge_lines: inward normals)
+    L = hol.edge_lines
+    ends = [q[:, :2], np.roll(q[:, :2], -1, axis=0)]
+    for e in ends:
+        np.testing.assert_allclose(-(np.sum(L[:, :2] * e, axis=1) + L[:, 2]), d, atol=1e-9)
+    np.testing.assert_allclose(offset_polygon_mm(c, np.zeros(len(c)))[:, :2], c)
+    # the clockwise polygon: the same edges, the same outward side
+    q_cw = offset_polygon_mm(c[::-1], np.roll(d[::-1], -1))
+    np.testing.assert_allclose(q_cw[::-1, :2], q[:, :2], atol=1e-9)
+
+
+def test_tracker_reanchors_when_the_break_changes(changing_break):
+    """The offsets measured at the full measurement no longer hold once the break's image has
+    changed: carried, every tracked frame is ~1 mm off in depth (beyond 2.5 std); re-anchored,
+    the tracked frames follow the design edge again. Fails if re-anchoring is removed."""
+    from cutterpose.tracking import TrackParams
+
+    cam, hol, poses, frames, params = changing_break
+    z_err = {}
+    for name, tp in (("re-anchored", TrackParams(anchor_gain=1.0)),
+                     ("carried", TrackParams(anchor_warmup=0, anchor_scale_change=np.inf))):
+        tracker = Tracker(cam, hol, method="dm+b", params=params, track=tp)
+        results = [tracker.update(f) for f in frames]
+        assert [r.mode for r in results] == ["full", "track", "track", "track"], \
+            [(r.mode, r.fallback_reason) for r in results]
+        z_err[name] = [r.pose.dof[5] - p.dof[5] for r, p in zip(results, poses)]
+        if name == "re-anchored":
+            # the warm-up: the two frames after the full measurement re-anchor, the third
+            # (0.5 % closer) carries their offsets
+            assert [r.anchor for r in results] == ["", "re-anchored", "re-anchored", ""]
+            std_z = [r.std_dof[5] for r in results]
+        else:
+            assert all(r.anchor == "" for r in results)
+    # the correction did change: carried, the tracked depth is off by more than 2.5 std ...
+    assert all(abs(z) > max(0.7, 2.5 * s) for z, s in zip(z_err["carried"][1:], std_z[1:])), \
+        z_err
+    # ... re-anchored, it is within 1.5 std (the band's own accuracy)
+    assert all(abs(z) < 1.5 * s for z, s in zip(z_err["re-anchored"], std_z)), z_err
+
+
+def test_reanchor_that_disagrees_falls_back(changing_break, monkeypatch):
+    """A band fit 5 mm from the tracked pose: one of the two is wrong, so the frame is
+    measured in full and says why (the re-anchor passes no pose of its own)."""
+    import cutterpose.tracking as tracking
+    from cutterpose.solvers.edge_band import measure_band
+
+    cam, hol, poses, frames, params = changing_break
+    tracker = Tracker(cam, hol, method="dm+b", params=params)
+    assert tracker.update(frames[0]).mode == "full"
+
+    def shifted(*args, **kw):
+        est = measure_band(*args, **kw)
+        est.t_cam_holder_mm = est.t_cam_holder_mm + np.array([0.0, 0.0, 5.0])
+        return est
+
+    monkeypatch.setattr(tracking, "measure_band", shifted)
+    r = tracker.update(frames[1])
+    assert r.mode == "full" and r.fallback_reason.startswith("re-anchor:"), r.fallback_reason
+    assert "Z_mm" in r.fallback_reason
+    assert abs(r.pose.dof[5] - poses[1].dof[5]) < 1.0
 
 
 def test_approach_outline_match_settles_the_depth():

@@ -524,8 +524,9 @@ def track_cmd(
     camera: str = typer.Option(None, help="table1 (default), synthetic, or a camera file."),
     holder: str = typer.Option(None, help="Holder JSON file (default: the bundled holder)."),
     method: str = typer.Option("dm+", help="Pose method of the full measurement (first frame "
-                               "and fall-backs; dm+b: ~0.5 s, and the tracked frames carry "
-                               "its correction to the design edge of a broken edge)."),
+                               "and fall-backs; dm+b: ~0.5 s, and the tracked frames fit the "
+                               "design edge of a broken edge, its offsets measured again by "
+                               "a band fit as the view changes: 'anchor' per frame)."),
     raw: str = typer.Option(None, "--raw", help="Frames are raw Mono8 files of WIDTHxHEIGHT."),
     filter_: bool = typer.Option(False, "--filter", help="Also report a constant-velocity "
                                  "filtered pose (beside the raw one)."),
@@ -544,10 +545,11 @@ def track_cmd(
     cam = _render_camera(camera)
     tracker = Tracker(cam, load_holder(holder) if holder else None, method, filter=filter_)
     size = parse_raw_size(raw) if raw else None
-    modes, times = {}, []
+    modes, times, anchors = {}, [], 0
     for name, frame in _frames(source, size):
         r = tracker.update(frame)
         modes[r.mode] = modes.get(r.mode, 0) + 1
+        anchors += r.anchor == "re-anchored"
         if r.mode == "track":
             times.append(r.timings_ms["total"])
         if json_lines:
@@ -556,11 +558,13 @@ def track_cmd(
             pose = ("  ".join(f"{v:8.3f}" for v in r.pose.dof) if r.pose is not None
                     else "no pose")
             note = f"  ({r.fallback_reason})" if r.fallback_reason and r.frame else ""
+            note += f"  ({r.anchor})" if r.anchor else ""
             typer.echo(f"{name:24s} {r.mode:5s} {pose}  {r.timings_ms['total']:6.1f} ms{note}")
     med = f", tracking median {np.median(times):.1f} ms/frame" if times else ""
     log(f"{sum(modes.values())} frames: {modes.get('track', 0)} tracked, "
         f"{modes.get('full', 0)} full measurements (first + fall-backs), "
-        f"{modes.get('lost', 0)} lost{med}")
+        f"{modes.get('lost', 0)} lost{med}"
+        + (f"; {anchors} re-anchored (band fit)" if anchors else ""))
 
 
 @app.command("render-sequence")

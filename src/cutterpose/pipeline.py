@@ -59,10 +59,13 @@ from .methods import get_method
 from .solvers.estimate import PoseEstimate
 
 __all__ = ["QualityLimits", "Quality", "Measurement", "measure", "measure_features",
-           "order_for_model", "pose_std", "demo", "DOF_NAMES", "edge_wear_effect"]
+           "order_for_model", "pose_std", "demo", "DOF_NAMES", "edge_wear_effect",
+           "band_budget", "band_verdict"]
 
 #: the pocket edge's break shapes a holder's drawing may give (QualityLimits.edge_shape)
 EDGE_SHAPES = ("round", "chamfer", "unknown")
+#: the shapes the band / radius fit tries for each of them
+EDGE_SHAPE_FITS = {"unknown": ("round", "chamfer"), "round": ("round",), "chamfer": ("chamfer",)}
 
 DOF_NAMES = ("alpha_deg", "beta_deg", "gamma_deg", "X_mm", "Y_mm", "Z_mm")
 
@@ -381,9 +384,7 @@ def _refine(method: str, features: Features, camera: Camera, holder: Holder,
     m = get_method(method)
     start = _solve(m.base, features.corners_px, camera, holder, limits, features.order,
                    features.H_ideal_holder)
-    shapes = {"unknown": ("round", "chamfer"), "round": ("round",),
-              "chamfer": ("chamfer",)}[limits.edge_shape]
-    return m.refine(start, features, camera, holder, shapes)
+    return m.refine(start, features, camera, holder, EDGE_SHAPE_FITS[limits.edge_shape])
 
 
 def ambiguity_ratio(est: PoseEstimate, corners_ideal_px, camera: Camera, holder: Holder,
@@ -452,6 +453,29 @@ def _verdict(est: PoseEstimate, std, r, limits: QualityLimits, amb: float = math
     return q
 
 
+def band_budget(band, dof, limits: QualityLimits) -> tuple[ErrorBudget, np.ndarray]:
+    """``dm+b``'s error budget at ``dof`` (its covariance parts,
+    :class:`~cutterpose.solvers.edge_band.BandPose`) and its residuals: (M, 2) vectors (ideal
+    px) along the edge normals of the inlier segments (dm+b has no corner residuals)."""
+    budget = budget_from_dof_cov(band.cov_parts, dof, limits.grasp_point_mm, limits.tolerance,
+                                 band.radius_mm)
+    inl = band.weights > 0.5
+    return budget, band.residuals_px[inl, None] * band.fit.profiles.normals_ideal[inl]
+
+
+def band_verdict(est: PoseEstimate, limits: QualityLimits) -> Quality:
+    """The verdict on a ``dm+b`` estimate made without image features (the tracker's
+    re-anchoring: :func:`~cutterpose.solvers.edge_band.measure_band` from a tracked pose): its
+    residuals, working range and error budget, as in :func:`measure_features`."""
+    if not est:
+        return _verdict(est, np.full(6, np.nan), np.zeros((0, 2)), limits)
+    if est.info.get("band") is None:
+        return Quality(False, f"{est.method} carries no band fit to judge")
+    budget, r = band_budget(est.info["band"], Pose(est.R_cam_holder, est.t_cam_holder_mm).dof,
+                            limits)
+    return _verdict(est, budget.std_dof, r, limits, budget=budget)
+
+
 def measure_features(features: Features, camera: Camera, holder: Holder, method: str = "dm+b",
                      limits: QualityLimits | None = None) -> Measurement:
     """Pose, std and verdict from already detected features (one image, several methods)."""
@@ -478,11 +502,7 @@ def measure_features(features: Features, camera: Camera, holder: Holder, method:
         fit = est.info.get("radius_fit")
         band = est.info.get("band")
         if band is not None:
-            # dm+b: residuals are along the edge normals, per segment (no corner residuals)
-            budget = budget_from_dof_cov(band.cov_parts, pose.dof, limits.grasp_point_mm,
-                                         limits.tolerance, band.radius_mm)
-            inl = band.weights > 0.5
-            r = band.residuals_px[inl, None] * band.fit.profiles.normals_ideal[inl]
+            budget, r = band_budget(band, pose.dof, limits)
         elif fit is not None:
             # dm+r: the model corners of the broken edge give the residuals and the budget
             r = fit.residuals_px

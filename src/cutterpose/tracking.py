@@ -30,6 +30,50 @@ contour lies, and the region search, threshold and contour segmentation are skip
    that fails any of them (a jump, an occluder, lost edges) falls back to the full
    measurement and says why.
 
+**Broken edges** (``method="dm+b"``, the default of ``measure``; ``dm+r`` in part): the edges
+the tracker finds are the innermost rise of the broken pocket edge, which lies off the design
+edge (the sharp intersection of face and wall) that ``dm+b`` measures the pose of. A uniform
+offset ``delta`` of the 400 x 180 mm contour is not a rigid motion: fitted with the design
+model it reads as a depth error of ``-Z delta / 128 mm`` (computed at 600 and 900 mm; the
+0.28 mm measured on the pbr ``new`` approach at 900 mm -> 2.0 mm, where the ``dm+`` tracker was
+2.15 mm off), i.e. a correction *proportional to the distance*. A
+correction carried as a rigid transform in the holder frame (the earlier tracker) therefore
+drifts as the robot closes in. Instead the tracker fits a *moved model*: design edge ``k``
+shifted by ``d_k`` mm along its outward normal in the face plane
+(:func:`offset_polygon_mm`), whose image is the tracked edge at every distance if ``d_k`` is a
+length on the holder; then the fitted pose is the design edge's directly.
+
+* **measuring the offsets** (an *anchor*): at a ``dm+b`` pose ``T`` and this frame's tracked
+  lines, ``d_k`` is the least-squares shift that puts both projected ends of design edge ``k``
+  on its line (Gauss-Newton on one unknown per edge); at the full measurement (first frame,
+  fall-backs) from the full ``dm+b`` pose;
+* **re-anchoring** (``dm+b`` only): ``d_k`` is not quite a constant length: measured against
+  the true pose on every frame of the 900 -> 600 mm approaches, the mean offset fell from 0.16
+  to 0.08 mm (analytic ``new``) and from 0.28 to 0.22 mm (pbr ``new``), per edge close to
+  ``a_k + b / (px per mm)`` with ``b`` ~0.6 px (a part fixed in pixels: the edge detector's
+  response to the blurred profile) -- rms about that model 0.007-0.012 mm, about a constant
+  length 0.037 mm. And one anchor carries its pose's error (the std of ``dm+b`` there) to every
+  later frame, where ``dm+b``'s std is smaller as the holder comes closer. So on a tracked frame
+  whose distance ``|t|`` differs from the last anchor's by more than ``anchor_scale_change``
+  (5 %; or every ``anchor_every`` frames), and on the ``anchor_warmup`` (2) frames after a
+  full measurement, the band fit :func:`cutterpose.solvers.edge_band.measure_band` runs from
+  the tracked pose (``anchor_passes`` passes; no region search, outline or ``dm+``) and is
+  judged by ``dm+b``'s own verdict (:func:`cutterpose.pipeline.band_verdict`). The offsets it
+  gives are blended into those carried with the weight ``max(anchor_gain, 1 / n)`` (``n``:
+  anchors since the full measurement; a fading-memory average, the steady-state gain of a
+  random-walk Kalman filter, so that the anchors' independent errors average out while the
+  slow change is followed), and the frame's edges are fitted again with them and checked as
+  every tracked frame (step 4);
+* **a re-anchor passes no pose of its own**: when the band's pose and the tracked pose differ
+  in any DOF by more than ``anchor_gate_sigma`` (5) times their combined std, one of them is
+  wrong, and the frame falls back to the full measurement with the reason; a band fit that its
+  verdict refuses leaves the offsets as they were (``TrackResult.anchor`` says so) and is
+  tried again after the same change of view;
+* **std**: a tracked pose inherits the error of the pose its offsets were measured at, so its
+  std is the fit's and the last anchor's ``dm+b`` std in quadrature.
+
+``method="dm+"`` tracks the design model itself, as before (no offsets, no re-anchoring).
+
 **Temporal filter** (optional, ``filter=True``): an alpha-beta filter, the steady-state Kalman
 filter of a constant-velocity model, on SE(3): state ``T`` and a per-frame twist ``xi``;
 predict ``T- = Exp(xi) T``; innovation ``nu = Log(Z T-^{-1})`` for the measured pose ``Z``;
@@ -71,10 +115,19 @@ from .geometry.pose import Pose, pixel_jacobian
 from .image import FeatureParams, as_grey_u8
 from .image.edges import intersect_consecutive, robust_edge_lines
 from .methods import get_method
-from .pipeline import DOF_NAMES, Measurement, QualityLimits, measure
+from .pipeline import (
+    DOF_NAMES,
+    EDGE_SHAPE_FITS,
+    Measurement,
+    QualityLimits,
+    band_verdict,
+    measure,
+)
+from .solvers.edge_band import measure_band
+from .solvers.estimate import PoseEstimate
 
 __all__ = ["TrackParams", "TrackResult", "Tracker", "PoseFilter", "approach_limits",
-           "approach_params", "se3_exp", "se3_log"]
+           "approach_params", "se3_exp", "se3_log", "offset_polygon_mm"]
 
 
 # ------------------------------------------------------------------------------------------
@@ -117,6 +170,38 @@ def _left(R: np.ndarray, t: np.ndarray, pose: Pose) -> Pose:
 
 
 # ------------------------------------------------------------------------------------------
+# the tracked edges of a broken edge: the design contour moved edge by edge in the face plane
+def _outward_normals(corners_mm: np.ndarray) -> np.ndarray:
+    """(N, 2) unit normals of the edges (edge ``k``: corner ``k`` to ``k + 1``) pointing out
+    of the polygon (away from the pocket), for either orientation."""
+    c = np.asarray(corners_mm, float)
+    d = np.roll(c, -1, axis=0) - c
+    x, y = c.T
+    ccw = np.dot(x, np.roll(y, -1)) - np.dot(np.roll(x, -1), y) > 0
+    n = np.column_stack([d[:, 1], -d[:, 0]]) * (1.0 if ccw else -1.0)
+    return n / np.linalg.norm(n, axis=1, keepdims=True)
+
+
+def offset_polygon_mm(corners_mm: np.ndarray, offset_mm: np.ndarray) -> np.ndarray:
+    """(N, 3) corners (holder frame, ``Z = 0``) of the polygon whose edge ``k`` is the design
+    edge ``k`` moved by ``offset_mm[k]`` along its outward normal in the face plane (negative:
+    into the pocket); corner ``i`` is where the moved edges ``i - 1`` and ``i`` meet (corners of
+    nearly parallel neighbours are moved along the edge normal instead)."""
+    c = np.asarray(corners_mm, float)
+    d = np.asarray(offset_mm, float)
+    n = _outward_normals(c)
+    rhs = np.einsum("ij,ij->i", n, c) + d            # edge k: n_k . x = n_k . c_k + d_k
+    A = np.stack([np.roll(n, 1, axis=0), n], axis=1)  # corner i: edges i - 1 and i
+    b = np.column_stack([np.roll(rhs, 1), rhs])
+    det = np.linalg.det(A)
+    ok = np.abs(det) > 1e-6
+    q = c + d[:, None] * n
+    if ok.any():
+        q[ok] = np.linalg.solve(A[ok], b[ok][..., None])[..., 0]
+    return np.column_stack([q, np.zeros(len(q))])
+
+
+# ------------------------------------------------------------------------------------------
 @dataclass(frozen=True)
 class TrackParams:
     """Parameters of the tracker (pixel lengths for the paper's 12-Mpx camera; scaled with
@@ -152,6 +237,24 @@ class TrackParams:
     filter_beta: float = 0.5 ** 2 / 1.5
     gate_mm: float = 5.0              #: filter reset when the innovation exceeds these
     gate_deg: float = 2.0
+    #: ``dm+b``: the tracked edges' offsets from the design edge are measured again (a band
+    #: fit from the tracked pose, module doc) once the distance to the holder has changed by
+    #: this fraction since the last measurement of them (``math.inf``: never) ...
+    anchor_scale_change: float = 0.05
+    anchor_every: int = 0             #: ... or every this many frames (0: no such rule)
+    #: the band fit's passes (``measure_band``; one pass from the tracked pose takes longer:
+    #: it chooses the look on all segments)
+    anchor_passes: int = 2
+    #: the weight of a re-anchor's offsets against those carried (a fading-memory average:
+    #: ``1 / n`` for the ``n``-th measurement since the full one while that is larger; 1:
+    #: the last measurement only)
+    anchor_gain: float = 0.5
+    #: after a full measurement, this many tracked frames re-anchor whatever the view's change
+    #: (one measurement of the offsets carries its pose's error to every frame after it)
+    anchor_warmup: int = 2
+    #: the band's pose and the tracked pose may differ per DOF by this many combined std;
+    #: beyond, one of them is wrong and the frame is measured in full
+    anchor_gate_sigma: float = 5.0
 
     def for_camera(self, camera: Camera) -> TrackParams:
         k = camera.focal_px / (0.00854103 / 3.45e-6)
@@ -189,7 +292,8 @@ class TrackResult:
     frame : the frame's index (0-based, in the order given to the tracker).
     mode : ``"track"`` (predicted edges), ``"full"`` (the full measurement: first frame or a
         fall-back) or ``"lost"`` (no pose).
-    pose : the raw per-frame pose (None when lost); ``std_dof`` its std per DOF.
+    pose : the raw per-frame pose (None when lost); ``std_dof`` its std per DOF (tracking
+        with ``dm+b``: the fit's and the last anchor's in quadrature, module doc).
     ok : the pose passed the checks (tracking) or the verdict (full).
     fallback_reason : why tracking was not used on this frame ("" when tracked).
     filtered_pose : the temporal filter's pose (None without filter or pose); ``filter_reset``
@@ -219,6 +323,14 @@ class TrackResult:
     lines_seen: int = 0    #: tracking: edges with enough inlier support (of 20)
     corners_used: int = 0  #: tracking: corners whose two lines were seen
     lines_dropped: int = 0  #: tracking: seen edges left out as off the fitted model
+    #: ``dm+b`` tracking: "re-anchored" when the edges' offsets from the design edge were
+    #: measured again on this frame, "re-anchor refused: ..." when the band fit was refused
+    #: (the previous offsets kept); "" otherwise
+    anchor: str = ""
+    #: tracking: the (N, 3) edge lines (ideal px, NaN where not seen) and which edges the pose
+    #: rests on (after the outliers were left out)
+    lines_ideal: np.ndarray | None = field(default=None, repr=False)
+    edges_used: np.ndarray | None = field(default=None, repr=False)
 
     def to_dict(self) -> dict:
         """One JSON object of ``cutterpose track --json-lines``."""
@@ -234,7 +346,7 @@ class TrackResult:
                 "filter_reset": self.filter_reset, "rms_residual_px": f(self.rms_px),
                 "edge_support": f(self.edge_support), "passes": self.passes,
                 "lines_seen": self.lines_seen, "corners_used": self.corners_used,
-                "lines_dropped": self.lines_dropped,
+                "lines_dropped": self.lines_dropped, "anchor": self.anchor,
                 "timings_ms": {k: round(float(v), 3) for k, v in self.timings_ms.items()}}
 
 
@@ -288,8 +400,10 @@ class Tracker:
     ----------
     camera, holder : defaults: the Table 1 camera and ``holder.json``.
     method : the full measurement's pose method (first frame and fall-backs). With ``dm+b``
-        the tracked frames carry its correction from the edges tracked (the innermost rise,
-        ``dm+``'s start) to the design edge, measured at the last full measurement.
+        (and ``dm+r``) the tracker fits the design contour moved edge by edge onto the edges it
+        tracks (the innermost rise of the broken edge), the offsets measured at the full
+        measurement; ``dm+b`` measures them again from the tracked pose as the view changes
+        (module doc, "Broken edges").
     params, limits : the full measurement's image parameters and quality limits (default: an
         approach from 940 to 580 mm, :func:`approach_params` and :func:`approach_limits`).
     track : :class:`TrackParams`.
@@ -325,7 +439,15 @@ class Tracker:
 
     def reset(self) -> None:
         """Forget the past: the next frame is measured in full."""
-        self._break: Pose | None = None   # the design edge relative to the tracked edges
+        # the model the tracked edges are fitted with: the design corners, or (dm+b, dm+r)
+        # the design contour moved by the offsets of the edges tracked from the design edge
+        self._offset_mm: np.ndarray | None = None
+        self._model_mm = self.holder.points_holder_mm
+        self._anchor_t_mm: np.ndarray | None = None   # where the offsets were measured
+        self._anchor_frame = -1
+        self._anchor_std = np.zeros(6)   # std of the pose the offsets were measured at
+        self._anchors = 0   # measurements of the offsets since the last full measurement
+        self._attempts = 0  # re-anchors tried since then
         self._last: Pose | None = None
         self._prev: Pose | None = None   # the pose before _last, when both were consecutive
         self._rms_ref = 0.0   # corner RMS of the last accepted full measurement (px)
@@ -352,9 +474,19 @@ class Tracker:
                 if isinstance(res, str):
                     reason, res = res, None
             if res is not None:
+                # the offsets were measured at a pose with its own error, which every tracked
+                # pose inherits (zero without offsets)
+                if self._offset_mm is not None:
+                    res.std_dof = np.hypot(res.std_dof, self._anchor_std)
+                if self._anchor_due(res.pose, k):
+                    try:
+                        res = self._reanchor(img, res, timings)
+                    except CutterposeError as e:
+                        res = f"re-anchor: {type(e).__name__}: {e}"
+                    if isinstance(res, str):
+                        reason, res = res, None
+            if res is not None:
                 self._prev, self._last = self._last, res.pose
-                if self._break is not None:
-                    res.pose = res.pose @ self._break
                 res.timings_ms = timings | {"total": (time.perf_counter() - t0) * 1e3}
                 self._filter(res, "")
                 return res
@@ -366,21 +498,16 @@ class Tracker:
         if m.ok:
             # a method that refines dm+'s pose with more than the corners (dm+b: the design
             # edge from the bands): the tracker follows the edges the corners come from (the
-            # innermost rise), so it starts from the pose those corners give near the design
-            # pose and carries the correction between the two, in the holder frame (a broken
-            # edge's offset is the holder's, not the view's)
+            # innermost rise), so it measures here, at the measured design pose, how far
+            # each of them lies from the design edge (module doc, "Broken edges")
             refines = get_method(self.method).base is not None
             start = m.estimate.info.get("start") if refines and m.estimate else None
             # the residual the tracked edges are held to: the corners' (dm+'s, for dm+b)
             rms = start.residual_px if start is not None else m.quality.rms_px
             self._rms_ref = float(rms) if np.isfinite(rms) else 0.0
-            inner = self._edge_pose(img, k, m) if refines else None
-            if inner is not None:
-                self._break = inner.inverse() @ m.pose
-                self._last = inner
-            else:
-                self._break = None
-                self._last = m.pose
+            if refines:
+                self._anchor_full(img, k, m)
+            self._last = m.pose
             res = TrackResult(k, "full", m.pose, m.std_dof, True, reason,
                               rms_px=m.quality.rms_px, corners_px=m.corners_px, measurement=m)
             self._filter(res, f"fall-back: {reason}" if k else "first pose")
@@ -394,16 +521,118 @@ class Tracker:
         res.timings_ms = timings | {"total": (time.perf_counter() - t0) * 1e3}
         return res
 
-    def _edge_pose(self, img: np.ndarray, k: int, m) -> Pose | None:
-        """The pose the tracker's own edges give in this frame, predicted from the measured
-        pose (the innermost rise of a broken edge, as tracking will see it); None if that
-        tracking fails its checks."""
+    # -- broken edges: the tracked edges' offsets from the design edge --------------------
+    def _anchor_full(self, img: np.ndarray, k: int, m: Measurement) -> None:
+        """The offsets from the tracker's own edges in this frame, found from the fully
+        measured design pose (the innermost rise of a broken edge, as tracking will see it).
+        When those edges fail tracking's checks, the previous offsets (or none) are kept and
+        the next tracked frame measures them again."""
         self._last, self._prev = m.pose, None
         try:
             res = self._track(img, k, {})
         except CutterposeError:
-            return None
-        return None if isinstance(res, str) or res is None else res.pose
+            res = None
+        self._anchors = self._attempts = 0
+        if isinstance(res, TrackResult):
+            self._set_offsets(m.pose, res.lines_ideal, res.edges_used, m.std_dof, k, 1.0)
+        else:
+            self._anchor_t_mm = None
+
+    def _anchor_due(self, pose: Pose, k: int) -> bool:
+        """A re-anchor on this tracked frame (``dm+b`` only: its band fit needs nothing but
+        the image and a close pose)?"""
+        if self.method != "dm+b":
+            return False
+        tp = self.tp
+        if self._anchor_t_mm is None or self._attempts < tp.anchor_warmup:
+            return True
+        scale = float(np.linalg.norm(pose.t_mm) / np.linalg.norm(self._anchor_t_mm))
+        return (abs(scale - 1.0) > tp.anchor_scale_change
+                or (tp.anchor_every > 0 and k - self._anchor_frame >= tp.anchor_every))
+
+    def _set_offsets(self, pose: Pose, lines: np.ndarray, seen: np.ndarray, std_dof,
+                     k: int, gain: float) -> None:
+        """Each seen edge's offset (mm, face plane, outward normal) from the design edge: the
+        shift of design edge ``k`` that puts both its ends, projected at the design ``pose``,
+        on the tracked line (least squares, Gauss-Newton), weighted by ``gain`` against the
+        offset carried; an edge not seen keeps its last offset (the seen edges' median the
+        first time)."""
+        c = np.asarray(self.holder.corners_mm, float)
+        nrm = _outward_normals(c)
+        ks = np.nonzero(seen)[0]
+        if len(ks) == 0:
+            return
+        ends = np.concatenate([c[ks], np.roll(c, -1, axis=0)[ks]])     # (2m, 2)
+        nn = np.concatenate([nrm[ks], nrm[ks]])
+        L = np.concatenate([lines[ks], lines[ks]])
+        Rn = np.column_stack([nn, np.zeros(len(nn))]) @ pose.R.T     # d X_cam / d offset
+        K2 = self.K[:2, :2]
+        d = np.zeros(len(ks))
+        for _ in range(3):   # the projection is nearly linear over a millimetre
+            dd = np.concatenate([d, d])
+            X = np.column_stack([ends + dd[:, None] * nn, np.zeros(len(nn))]) @ pose.R.T \
+                + pose.t_mm
+            uv = X[:, :2] / X[:, 2:3] @ K2.T + self.K[:2, 2]
+            r = L[:, 0] * uv[:, 0] + L[:, 1] * uv[:, 1] + L[:, 2]
+            duv = (Rn[:, :2] - X[:, :2] / X[:, 2:3] * Rn[:, 2:3]) / X[:, 2:3] @ K2.T
+            g = L[:, 0] * duv[:, 0] + L[:, 1] * duv[:, 1]
+            m = len(ks)
+            d = d - (r[:m] * g[:m] + r[m:] * g[m:]) / (g[:m] ** 2 + g[m:] ** 2)
+        if self._offset_mm is None:
+            off, gain = np.full(len(c), float(np.median(d))), 1.0
+        else:
+            off = self._offset_mm.copy()
+        off[ks] += gain * (d - off[ks])
+        self._offset_mm = off
+        self._model_mm = offset_polygon_mm(c, off)
+        self._anchor_t_mm, self._anchor_frame = pose.t_mm.copy(), k
+        self._anchor_std = np.where(np.isfinite(std_dof), std_dof, 0.0)
+        self._anchors += 1
+
+    def _reanchor(self, img: np.ndarray, res: TrackResult, timings: dict) -> TrackResult | str:
+        """Measure the design edge again on a tracked frame (module doc, "Broken edges"): the
+        band fit from the tracked pose, judged by its own verdict and against the tracked
+        pose; the offsets measured from this frame's tracked edges at the band's pose and the
+        edges fitted again with them. The tracked frame (or, when the two poses disagree, the
+        reason for a full measurement)."""
+        tp = self.tp
+        t = time.perf_counter()
+        # whatever the outcome, the next attempt after the view has changed as much again
+        self._anchor_t_mm, self._anchor_frame = res.pose.t_mm.copy(), res.frame
+        self._attempts += 1
+        start = PoseEstimate("track", res.pose.R, res.pose.t_mm.copy())
+        est = measure_band(img, self.camera, self.holder, start, res.edges_used,
+                           EDGE_SHAPE_FITS[self.limits.edge_shape], tp.anchor_passes)
+        q = band_verdict(est, self.limits)
+        timings["anchor"] = (time.perf_counter() - t) * 1e3
+        if not q.ok:
+            res.anchor = f"re-anchor refused ({q.reason}): the last offsets kept"
+            return res
+        band = Pose(est.R_cam_holder, est.t_cam_holder_mm)
+        std_band = q.budget.std_dof
+        diff = band.dof - res.pose.dof
+        diff[:3] = (diff[:3] + 180.0) % 360.0 - 180.0
+        z = np.abs(diff) / np.hypot(std_band, res.std_dof)
+        j = int(np.argmax(z))
+        if not z[j] <= tp.anchor_gate_sigma:
+            return (f"re-anchor: the band's design edge and the tracked pose differ by "
+                    f"{diff[j]:.3g} {DOF_NAMES[j].split('_')[1]} in {DOF_NAMES[j]} ({z[j]:.1f} "
+                    f"std > {tp.anchor_gate_sigma}): the tracking or the band fit is wrong")
+        self._set_offsets(band, res.lines_ideal, res.edges_used, std_band, res.frame,
+                          max(tp.anchor_gain, 1.0 / (self._anchors + 1)))
+        # the same edges fitted again with the new offsets, and checked as every tracked frame
+        fit = self._fit_lines_pose(res.pose, res.lines_ideal, res.edges_used)
+        if isinstance(fit, str):
+            return f"re-anchor: {fit}"
+        pose, r, _, J, J2 = fit
+        why = self._check(pose, r, J, J2, res.edges_used)
+        if isinstance(why, str):
+            return f"re-anchor: {why}"
+        res.rms_px, std = why
+        res.pose, res.std_dof = pose, np.hypot(std, self._anchor_std)
+        res.anchor = "re-anchored"
+        timings["anchor"] = (time.perf_counter() - t) * 1e3
+        return res
 
     def _filter(self, res: TrackResult, force: str) -> None:
         if self.filter is not None and res.pose is not None:
@@ -421,7 +650,7 @@ class Tracker:
     def _project(self, pose: Pose) -> np.ndarray | None:
         """The model corners projected with ``pose`` (ideal px, holder order); None if the
         holder is behind the camera."""
-        X = pose.apply(self.holder.points_holder_mm)
+        X = pose.apply(self._model_mm)
         if np.any(X[:, 2] <= 0):
             return None
         return X[:, :2] / X[:, 2:3] @ self.K[:2, :2].T + self.K[:2, 2]
@@ -452,7 +681,7 @@ class Tracker:
             t = now
 
         tp = self.tp
-        n = len(self.holder.points_holder_mm)
+        n = len(self._model_mm)
         pose = self.predict()
         # no velocity yet (second frame, after a fall-back): the frame's motion is not
         # predicted, a wider band covers it
@@ -525,7 +754,7 @@ class Tracker:
         res = TrackResult(k, "track", pose, std, True, "", rms_px=rms,
                           edge_support=float(support[seen].min()), corners_px=corners_px,
                           lines_seen=int(seen.sum()), corners_used=int(visible.sum()),
-                          lines_dropped=dropped)
+                          lines_dropped=dropped, lines_ideal=lines, edges_used=seen)
         res.passes = passes
         return res
 
@@ -537,7 +766,7 @@ class Tracker:
         hidden still counts through its seen one (Drummond & Cipolla 2002: distances along
         the edge normals). Parameters: the six DOFs. Returns the pose, the residuals at the
         end and at the start (each (2 m,)) and the final Jacobian (2 m, 6), or a reason."""
-        P = self.holder.points_holder_mm
+        P = self._model_mm
         n = len(P)
         ks = np.nonzero(seen)[0]
         rows = np.concatenate([ks, n + ks])        # of the ends (P_k, P_k+1) of all edges
@@ -579,7 +808,7 @@ class Tracker:
 
     def _end_jacobian(self, pose: Pose) -> np.ndarray:
         """Pixel Jacobian (80, 6) of both ends of every edge (``P_k``, then ``P_k+1``)."""
-        P = self.holder.points_holder_mm
+        P = self._model_mm
         return pixel_jacobian(pose.R, pose.t_mm, np.concatenate([P, np.roll(P, -1, axis=0)]),
                               self.K)[0]
 
