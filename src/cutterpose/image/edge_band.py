@@ -56,7 +56,8 @@ from ..geometry.camera import Camera
 from ..geometry.holder import Holder
 from . import edge_model as em
 
-__all__ = ["BandProfiles", "BandFit", "sample_band", "fit_band", "band_looks"]
+__all__ = ["BandProfiles", "BandFit", "BandLooks", "sample_band", "fit_band", "band_looks",
+           "profile_costs", "CAL_RADII_MM"]
 
 #: the radii the coarse scan tries (mm) and the fine step
 COARSE_RADII_MM = np.array([0.0, 0.25, 0.5, 0.75, 1.0, 1.25, 1.5, 2.0, 2.5, 3.0, 3.5, 4.0, 4.5,
@@ -81,6 +82,30 @@ PLAUSIBLE = 0.7
 #: likelihood weight relative to the best (``(C_best / C)^(n / 2)``, the budget's) is at least
 MAX_PLAUSIBLE = 3
 MIN_LOOK_WEIGHT = 0.01
+#: the radii over which :func:`profile_costs` profiles each segment's radius out (mm): the fine
+#: scan's steps (0.05 mm below 2 mm, 0.1 mm above) over the coarse scan's range
+CAL_RADII_MM = np.r_[np.arange(0.0, 2.0, FINE_STEP_MM), np.arange(2.0, 6.5 + 1e-9,
+                                                                    2 * FINE_STEP_MM)]
+
+
+@dataclass(frozen=True)
+class BandLooks:
+    """Photometric candidates calibrated in the cell (:mod:`cutterpose.calibration.edge_look`)
+    in place of the generic :func:`band_looks`.
+
+    ``look``: the calibrated photometry (its ``shape`` is replaced by each shape fitted; the
+    shape is still chosen per image by the profiles' cost, the blur among ``blurs_px``);
+    ``variants``: looks round it (the calibration's uncertainty) that are never chosen, only
+    fitted for the error budget's edge-model term, each weighted by its relative likelihood as
+    the generic plausible looks are.
+    """
+
+    look: em.EdgeLook
+    variants: tuple[em.EdgeLook, ...] = ()
+    blurs_px: tuple[float, ...] = BLURS_PX
+
+    def for_shape(self, shape: str) -> em.EdgeLook:
+        return replace(self.look, shape=shape, profile_sigma_px=0.0)
 
 
 def band_looks(shapes=("round", "chamfer")) -> list[em.EdgeLook]:
@@ -458,25 +483,35 @@ def _trimmed_total(cost, valid) -> float:
 
 def fit_band(bp: BandProfiles, camera: Camera, holder: Holder, R_cam_holder, t_cam_holder_mm,
              shapes=("round", "chamfer"), previous: BandFit | None = None,
-             fine_plausible: bool = True) -> BandFit:
+             fine_plausible: bool = True, looks: BandLooks | None = None) -> BandFit:
     """Fit the edge model to every segment's profile (module doc).
 
     ``previous``: a fit at a nearby pose whose looks (chosen and plausible) are fitted again,
     with no look scan. ``fine_plausible=False`` leaves the plausible looks at their coarse
-    fit (a first pass that only needs to know which they are).
+    fit (a first pass that only needs to know which they are). ``looks``: a look calibrated
+    in the cell (:class:`BandLooks`) instead of the generic :func:`band_looks`: the shape is
+    chosen among ``shapes`` with it, the blur among its ``blurs_px``, and its variants are
+    fitted for the budget only (never chosen).
 
     Returns
     -------
     BandFit : ``best`` the chosen look (its blur fitted), ``plausible`` the other looks whose
-        trimmed cost is within :data:`PLAUSIBLE` of the best (fine-fitted too).
+        trimmed cost is within :data:`PLAUSIBLE` of the best (fine-fitted too), and with
+        ``looks`` its variants at the chosen shape and blur.
     """
     if not bp.valid.any():
         raise InputError("fit_band: no segment of any edge was sampled")
-    looks = band_looks(shapes)
+    if looks is None:
+        candidates, blurs = band_looks(shapes), BLURS_PX
+        light = em.EdgeLook()
+    else:
+        candidates, blurs = [looks.for_shape(s) for s in shapes], tuple(looks.blurs_px)
+        light = looks.look                  # a calibrated ring light (edge_views' lights)
     # the model grid: the samples, the shifts scanned (<= COARSE_SHIFT_PX + a fine step) and
     # the blur's reach (<= 7 px) either side
     grid = (float(bp.w_px[0]) - 14.0, float(bp.w_px[-1]) + 14.0)
-    bank = _ModelBank(em.edge_views(R_cam_holder, t_cam_holder_mm, camera.K, holder), grid)
+    bank = _ModelBank(em.edge_views(R_cam_holder, t_cam_holder_mm, camera.K, holder, light),
+                      grid)
     if previous is not None:
         # a second pass at a pose that moved little: the looks chosen before, scanned anew
         # (coarse, then fine) only for the chosen and the plausible ones
@@ -488,15 +523,15 @@ def fit_band(bp: BandProfiles, camera: Camera, holder: Holder, R_cam_holder, t_c
     # the look is chosen on every other segment (with 40 or more): the coarse scans of all
     # looks are the fit's main cost, and a shared look needs no more
     sub = _subset(bp, np.arange(0, len(bp.edge), 2)) if len(bp.edge) >= 40 else bp
-    coarse = [_fit_looks(sub, bank, [lk])[0] for lk in looks]
+    coarse = [_fit_looks(sub, bank, [lk])[0] for lk in candidates]
     totals = np.array([lf.total for lf in coarse])
     order = np.argsort(totals)
     best_i = int(order[0])
     n_eff = max(1, int(np.ceil(0.75 * int(sub.valid.sum()))))
-    full = _fit_looks(bp, bank, [looks[best_i]])[0] if sub is not bp else coarse[best_i]
+    full = _fit_looks(bp, bank, [candidates[best_i]])[0] if sub is not bp else coarse[best_i]
     # the chosen variant at each blur (one raw profile), then the plausible others at the
     # chosen blur
-    fine = _fit_looks(bp, bank, [replace(looks[best_i], blur_sigma_px=b) for b in BLURS_PX],
+    fine = _fit_looks(bp, bank, [replace(candidates[best_i], blur_sigma_px=b) for b in blurs],
                       full)
     best = min(fine, key=lambda lf: lf.total)
     plausible = []
@@ -506,13 +541,57 @@ def fit_band(bp: BandProfiles, camera: Camera, holder: Holder, R_cam_holder, t_c
         if (ratio < PLAUSIBLE or ratio ** (0.5 * n_eff) < MIN_LOOK_WEIGHT
                 or len(plausible) == MAX_PLAUSIBLE):
             continue
-        lk = replace(looks[i], blur_sigma_px=best.look.blur_sigma_px)
+        lk = replace(candidates[i], blur_sigma_px=best.look.blur_sigma_px)
         if fine_plausible:
             c = _fit_looks(bp, bank, [lk])[0] if sub is not bp else coarse[i]
             plausible.append(_fit_looks(bp, bank, [lk], c)[0])
         else:
             plausible.append(replace(coarse[i], look=lk))
+    if looks is not None:
+        # the calibration's variants at the chosen shape and blur: for the budget only (a first
+        # pass only needs to name them; the last fits them)
+        for v in looks.variants:
+            lk = replace(v, shape=best.look.shape, blur_sigma_px=best.look.blur_sigma_px,
+                         profile_sigma_px=0.0)
+            if fine_plausible:
+                plausible.append(_fit_looks(bp, bank, [lk], _fit_looks(bp, bank, [lk])[0])[0])
+            else:
+                plausible.append(replace(best, look=lk))
     return BandFit(best, plausible, bp)
+
+
+def profile_costs(bp: BandProfiles, view: em.EdgeView, looks, radii_mm=CAL_RADII_MM,
+                  shifts_px=(0.0,)):
+    """The fit's cost of every segment under looks that differ only by their blur, over a grid
+    of radii and shifts (the calibration's scan, :mod:`cutterpose.calibration.edge_look`).
+
+    Parameters
+    ----------
+    view : :func:`~cutterpose.image.edge_model.edge_views` at the profiles' pose (lit as the
+        looks are).
+    looks : looks sharing all but ``blur_sigma_px`` (one raw profile for all of them).
+    radii_mm : (M,) radii (mm) given to every segment; shifts_px : (H,) multiples of
+        :data:`STEP_PX`.
+
+    Returns
+    -------
+    cost, gain : (L, S, M, H) residual sum of squares (grey^2; inf for invalid segments) and
+        the profile gain of ``y ~ a + b m(w - shift)``.
+    """
+    looks = list(looks)
+    h = STEP_PX
+    grid = (float(bp.w_px[0]) - 14.0, float(bp.w_px[-1]) + 14.0)
+    bank = _ModelBank(view, grid)
+    Y = np.where(bp.valid[:, None], bp.values, 0.0)
+    w0, bls = bank.profiles(np.asarray(radii_mm, float), looks, h)
+    m0 = int(round(-w0[0] / h))
+    w_idx = np.rint(bp.w_px / h).astype(int)
+    shifts = np.rint(np.asarray(shifts_px, float) / h).astype(int)
+    cost, gain = zip(*(_scan(Y, _along_segments(bl, bp.edge, bp.frac), m0, w_idx, shifts)
+                       for bl in bls))
+    cost = np.stack(cost)
+    cost[:, ~bp.valid] = np.inf
+    return cost, np.stack(gain)
 
 
 def _subset(bp: BandProfiles, idx) -> BandProfiles:

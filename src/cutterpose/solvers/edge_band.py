@@ -46,7 +46,7 @@ from ..errors import CutterposeError, InputError
 from ..geometry.camera import Camera
 from ..geometry.holder import Holder
 from ..geometry.pose import Pose, rotation_from_euler_deg
-from ..image.edge_band import BandFit, fit_band, sample_band
+from ..image.edge_band import BandFit, BandLooks, fit_band, sample_band
 from .estimate import PoseEstimate
 
 __all__ = ["BandPose", "fit_pose_design_points", "measure_band", "refine_features", "solve",
@@ -82,6 +82,7 @@ class BandPose:
     weights: np.ndarray           # (S,) robust weights (0: not used)
     chi: float                    # root of the weighted chi-square per degree of freedom
     passes: int
+    calibrated: bool = False      # the look was calibrated in the cell (BandLooks)
 
     @property
     def radius_mm(self) -> float:
@@ -97,7 +98,11 @@ class BandPose:
                                           for r, ok in zip(b.radius_mm, v)],
                 "segments_used": int(np.count_nonzero(self.weights > 0.5)),
                 "segments_valid": int(v.sum()), "residual_chi": round(self.chi, 3),
-                "plausible_looks": len(self.fit.plausible), "passes": self.passes}
+                "plausible_looks": len(self.fit.plausible), "passes": self.passes,
+                "look": {"calibrated": self.calibrated, "specular": b.look.specular,
+                         "shininess": b.look.shininess, "face_albedo": b.look.face_albedo,
+                         "wall_albedo": b.look.wall_albedo,
+                         "pocket_level": b.look.pocket_level}}
 
 
 def _residuals(dof, X, p, n, K):
@@ -170,10 +175,11 @@ def _look_spread(fit: BandFit, X, n_img, K, dof, valid) -> np.ndarray:
 
 
 def measure_band(image, camera: Camera, holder: Holder, start: PoseEstimate,
-                 edges_seen=None, shapes=("round", "chamfer"), max_passes: int | None = None
-                 ) -> PoseEstimate:
+                 edges_seen=None, shapes=("round", "chamfer"), max_passes: int | None = None,
+                 looks: BandLooks | None = None) -> PoseEstimate:
     """``dm+b`` from a start pose (module doc). A falsy estimate with the reason when the band
-    cannot be measured."""
+    cannot be measured. ``looks``: the edge look calibrated in the cell
+    (:mod:`cutterpose.calibration.edge_look`) instead of the generic looks."""
     t0 = time.perf_counter()
     max_passes = PASSES if max_passes is None else max_passes
     if not start:
@@ -198,7 +204,8 @@ def measure_band(image, camera: Camera, holder: Holder, start: PoseEstimate,
                     f"{len(valid)} edge segments (< {100 * MIN_SEGMENT_FRACTION:.0f} %): "
                     "edges hidden")
             fit = fit_band(bp, camera, holder, R, dof[3:], shapes,
-                           previous=fit if passes > 1 else None, fine_plausible=last)
+                           previous=fit if passes > 1 else None, fine_plausible=last,
+                           looks=looks)
             valid &= np.isfinite(fit.best.cost) & np.isfinite(fit.best.shift_var_px2)
             if valid.sum() < MIN_SEGMENT_FRACTION * len(valid):
                 return PoseEstimate.failure(
@@ -227,7 +234,7 @@ def measure_band(image, camera: Camera, holder: Holder, start: PoseEstimate,
     res[valid] = r
     wt = np.zeros(len(valid))
     wt[valid] = w
-    band = BandPose(dof, parts, fit, res, wt, s, passes)
+    band = BandPose(dof, parts, fit, res, wt, s, passes, calibrated=looks is not None)
     R = rotation_from_euler_deg(*dof[:3])
     inl = w > 0.5
     rms = float(np.sqrt(np.mean(r[inl] ** 2))) if inl.any() else math.nan
@@ -237,13 +244,16 @@ def measure_band(image, camera: Camera, holder: Holder, start: PoseEstimate,
 
 
 def refine_features(start: PoseEstimate, features, camera: Camera, model: Holder,
-                    shapes=("round", "chamfer")) -> PoseEstimate:
+                    shapes=("round", "chamfer"), edge_look=None) -> PoseEstimate:
     """``dm+b`` in the pipeline (:class:`~cutterpose.methods.Method` ``refine``): the bands of
-    the edges the image processing saw, in the image it saw them in, from ``start``."""
+    the edges the image processing saw, in the image it saw them in, from ``start``.
+    ``edge_look``: a calibrated look (:class:`~cutterpose.image.edge_band.BandLooks`, or
+    anything with a ``band_looks()`` giving one: the calibration file's object)."""
     if features.image is None:
         return PoseEstimate.failure("dm+b", "the features carry no image to measure the band in")
     seen = features.lines_visible if features.order == "holder" else None
-    est = measure_band(features.image, camera, model, start, seen, shapes)
+    looks = edge_look.band_looks() if hasattr(edge_look, "band_looks") else edge_look
+    est = measure_band(features.image, camera, model, start, seen, shapes, looks=looks)
     if est:
         est.info["start"] = start
     return est

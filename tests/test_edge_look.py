@@ -1,0 +1,185 @@
+"""The edge look calibrated in the cell (``cutterpose calibrate-edge-look``, ``--edge-look``):
+the band model's photometry fitted on a reference holder at known poses so that ``dm+b`` puts
+the design edge where the known pose does."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import replace
+
+import cv2
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from cutterpose.calibration.edge_look import (
+    EdgeLookCalibration,
+    ReferenceImage,
+    calibrate_edge_look,
+    load_edge_look,
+    save_edge_look,
+    shift_at_truth,
+)
+from cutterpose.cli import app
+from cutterpose.errors import EdgeLookFileError
+from cutterpose.geometry.camera import default_camera
+from cutterpose.geometry.holder import default_holder
+from cutterpose.geometry.pose import Pose
+from cutterpose.image import edge_model as em
+from cutterpose.image.edge_band import STEP_PX, sample_band
+from cutterpose.pipeline import QualityLimits, measure
+from cutterpose.render.analytic import preset, render_holder
+
+CAM = default_camera("table1")
+HOLDER = default_holder()
+#: a look unlike the nominal one (a broader, stronger lobe, darker walls)
+TRUE_LOOK = em.EdgeLook(specular=0.7, shininess=12.0, wall_albedo=0.15, pocket_level=0.08)
+runner = CliRunner()
+
+
+def model_reference(pose: Pose, look: em.EdgeLook, seed: int, blur_px: float = 0.9
+                    ) -> ReferenceImage:
+    """A reference image whose band profiles are the edge model's own for ``look`` at the true
+    pose (shift 0), one radius per edge (0.5-1.6 mm), a grey offset and gain per segment and
+    1 grey level of noise: the sampling geometry of ``sample_band``, the values of the model."""
+    rng = np.random.default_rng(seed)
+    blank = np.zeros(CAM.image_size_px[::-1], np.uint8)
+    bp = sample_band(blank, CAM, HOLDER, pose.R, pose.t_mm, n_seg=2, positions=12)
+    n = len(HOLDER.corners_mm)
+    r_edge = rng.uniform(0.5, 1.6, n)
+    per_end = np.stack([np.roll(r_edge, 1), r_edge], axis=1)[..., None]     # (N, 2, 1)
+    view = em.edge_views(pose.R, pose.t_mm, CAM.K, HOLDER, look)
+    grid = (float(bp.w_px[0]) - 14.0, float(bp.w_px[-1]) + 14.0)
+    w0, (bl,) = em.blurred_profiles(per_end, view, em.cross_section(view, look),
+                                    [(blur_px, 0.0)], grid, STEP_PX)
+    f = bp.frac[:, None]
+    m = (1 - f) * bl[bp.edge, 1, 0] + f * bl[(bp.edge + 1) % n, 0, 0]    # (S, G0)
+    idx = np.rint((bp.w_px - w0[0]) / STEP_PX).astype(int)
+    S = len(bp.edge)
+    y = (rng.uniform(20, 40, (S, 1)) + rng.uniform(120, 200, (S, 1)) * m[:, idx]
+         + rng.normal(0, 1.0, (S, len(idx))))
+    bp.values = y
+    return ReferenceImage(f"model{seed}", bp, CAM, HOLDER, pose.R, pose.t_mm, "round")
+
+
+@pytest.fixture(scope="module")
+def model_refs():
+    return [model_reference(Pose.from_euler(3, -4, 2, 10, -8, 605), TRUE_LOOK, 1),
+            model_reference(Pose.from_euler(-5, 2, -3, -12, 6, 620), TRUE_LOOK, 2)]
+
+
+def test_calibration_recovers_a_known_look(model_refs):
+    """From profiles the edge model made with a known look, the fit with the shift held at 0
+    recovers that look's lobe, and the design edge then comes out where the pose puts it."""
+    cal = calibrate_edge_look(model_refs, rounds=1)
+    assert abs(cal.look.specular / TRUE_LOOK.specular - 1) < 0.1, cal.look
+    assert abs(cal.look.shininess / TRUE_LOOK.shininess - 1) < 0.15, cal.look
+    # the nominal look leaves most of the cost; the recovered one only the noise
+    assert cal.report["cost_ratio_to_start"] < 0.2
+    sd = cal.sd()
+    assert all(np.isfinite(v) and v >= 0 for v in sd.values())
+    calibrated = shift_at_truth(model_refs, cal.band_looks(), shapes=("round",))
+    generic = shift_at_truth(model_refs, shapes=("round",))
+    assert abs(calibrated["mean_px"]) < 0.05
+    assert abs(calibrated["mean_px"]) < abs(generic["mean_px"])
+
+
+def _calibration(**look) -> EdgeLookCalibration:
+    lk = replace(em.EdgeLook(profile_sigma_px=0.0), **look)
+    x = (float(np.log(lk.specular)), float(np.log(lk.shininess)), lk.wall_albedo,
+         lk.pocket_level)
+    cov = tuple(tuple(1e-4 * (i == j) for j in range(4)) for i in range(4))
+    return EdgeLookCalibration(lk, x, cov, cov)
+
+
+@pytest.fixture(scope="module")
+def new_holder(tmp_path_factory):
+    """A new holder with fillets of 0.5-1.5 mm (the analytic ``new``) and a look file."""
+    d = tmp_path_factory.mktemp("look")
+    pose = Pose.from_euler(-2, 3, -3, -12, 5, 614)
+    img = render_holder(pose, CAM, HOLDER, preset("new"), seed=5, noise_seed=6).image
+    cv2.imwrite(str(d / "img.png"), img)
+    cal = _calibration(specular=1.3, shininess=33.0, wall_albedo=0.2, pocket_level=0.1)
+    save_edge_look(cal, d / "look.json")
+    return pose, img, cal, d
+
+
+def test_edge_look_changes_the_fitted_look(new_holder):
+    """``measure(edge_look=...)``: dm+b fits the calibrated look (and its variants for the
+    budget) instead of the generic ones; without it, a generic look as before."""
+    pose, img, cal, _ = new_holder
+    limits = QualityLimits(edge_shape="unknown")
+    plain = measure(img, CAM, HOLDER, method="dm+b", limits=limits)
+    calib = measure(img, CAM, HOLDER, method="dm+b", limits=limits, edge_look=cal)
+    b0, b1 = plain.estimate.info["band"], calib.estimate.info["band"]
+    generic = {(v.specular, v.shininess) for v in em.LOOK_VARIANTS}
+    assert (b0.fit.best.look.specular, b0.fit.best.look.shininess) in generic
+    assert not b0.calibrated
+    assert b1.calibrated
+    assert (b1.fit.best.look.specular, b1.fit.best.look.shininess) == (1.3, 33.0)
+    # the variants round it enter the budget's edge-model term
+    varied = [lf.look for lf in b1.fit.plausible if lf.look.shape == b1.fit.best.look.shape]
+    assert len(varied) >= 2
+
+    def photometry(v):
+        return v.specular, v.shininess, v.wall_albedo, v.pocket_level
+
+    assert all(photometry(v) != photometry(b1.fit.best.look) for v in varied)
+    assert calib.pose is not None
+
+
+def test_cli_edge_look_option(new_holder):
+    """``cutterpose measure --edge-look``: the JSON says which look was fitted."""
+    _, _, _, d = new_holder
+    res = runner.invoke(app, ["measure", str(d / "img.png"), "--json", "--edge-look",
+                              str(d / "look.json")])
+    assert res.exit_code in (0, 3), res.output
+    look = json.loads(res.stdout)["edge_band"]["look"]
+    assert look["calibrated"] is True and look["specular"] == 1.3
+
+
+def _good_dict():
+    return _calibration(specular=0.9, shininess=30.0).to_dict()
+
+
+@pytest.mark.parametrize("change,words", [
+    (lambda d: d.update(format="camera"), "not an edge look file"),
+    (lambda d: d.update(version=7), "version"),
+    (lambda d: d["look"].update(specular="bright"), "specular"),
+    (lambda d: d["look"].update(shininess=float("nan")), "shininess"),
+    (lambda d: d["look"].update(wall_albedo=-0.2), "wall_albedo"),
+    (lambda d: d.pop("look"), "look"),
+    (lambda d: d.update(cov_mean=[[1.0, 2.0], [2.0, 1.0]]), "cov_mean"),
+    (lambda d: d.update(cov_image=[[-1.0 if i == j else 0.0 for j in range(4)]
+                                   for i in range(4)]), "cov_image"),
+    (lambda d: d.update(blurs_px=[]), "blurs_px"),
+    (lambda d: d.update(x=[0.0, 1.0]), "'x'"),
+])
+def test_malformed_look_file_is_a_typed_error(tmp_path, change, words):
+    d = _good_dict()
+    change(d)
+    p = tmp_path / "look.json"
+    p.write_text(json.dumps(d))
+    with pytest.raises(EdgeLookFileError, match=words):
+        load_edge_look(p)
+
+
+def test_look_file_round_trip_and_unreadable_files(tmp_path):
+    cal = _calibration(specular=0.9, shininess=30.0, wall_albedo=0.1)
+    save_edge_look(cal, tmp_path / "ok.json")
+    back = load_edge_look(tmp_path / "ok.json")
+    assert back.look == cal.look and back.x == cal.x and back.cov_image == cal.cov_image
+    (tmp_path / "bad.json").write_text("{not json")
+    with pytest.raises(EdgeLookFileError, match="not valid JSON"):
+        load_edge_look(tmp_path / "bad.json")
+    with pytest.raises(EdgeLookFileError, match="not found"):
+        load_edge_look(tmp_path / "missing.json")
+
+
+def test_cli_malformed_look_file_one_line(new_holder, tmp_path):
+    _, _, _, d = new_holder
+    p = tmp_path / "look.json"
+    p.write_text(json.dumps({"format": "cutterpose-edge-look", "version": 1}))
+    res = runner.invoke(app, ["measure", str(d / "img.png"), "--edge-look", str(p)])
+    assert res.exit_code == 2
+    assert "look" in res.output and "Traceback" not in res.output
