@@ -183,3 +183,35 @@ def test_cli_malformed_look_file_one_line(new_holder, tmp_path):
     res = runner.invoke(app, ["measure", str(d / "img.png"), "--edge-look", str(p)])
     assert res.exit_code == 2
     assert "look" in res.output and "Traceback" not in res.output
+
+
+def test_cell_file_edge_look(tmp_path):
+    """``edge_look = "look.json"`` in the service's cell file: loaded at start and given to
+    every measurement; a malformed one stops the start with the field named."""
+    from cutterpose.errors import CellFileError
+    from cutterpose.service.config import load_cell
+
+    env = {"CUTTERPOSE_TOKEN": "s3cret-token"}
+    save_edge_look(_calibration(specular=0.9, shininess=30.0), tmp_path / "look.json")
+    (tmp_path / "cell.toml").write_text('edge_look = "look.json"\n')
+    cell = load_cell(tmp_path / "cell.toml", env=env)
+    assert cell.edge_look is not None and cell.edge_look.look.specular == 0.9
+    assert cell.describe()["edge_look"] is True
+    assert load_cell(None, env=env).edge_look is None
+    (tmp_path / "bad.json").write_text('{"format": "cutterpose-edge-look", "version": 1}')
+    (tmp_path / "bad.toml").write_text('edge_look = "bad.json"\n')
+    with pytest.raises(CellFileError, match="edge_look"):
+        load_cell(tmp_path / "bad.toml", env=env)
+
+
+def test_cli_calibrate_needs_known_poses(tmp_path):
+    """``calibrate-edge-look`` without a set's truth.json or a pose file says what it needs."""
+    res = runner.invoke(app, ["calibrate-edge-look", str(tmp_path), "--out",
+                              str(tmp_path / "look.json")])
+    assert res.exit_code == 2 and "truth.json" in res.output and "--poses" in res.output
+    cv2.imwrite(str(tmp_path / "a.png"), np.zeros((8, 8), np.uint8))
+    (tmp_path / "poses.csv").write_text("x_mm,y_mm,z_mm,qx,qy,qz,qw\n0,0,600,0,0,0,1\n"
+                                        "0,0,610,0,0,0,1\n")
+    res = runner.invoke(app, ["calibrate-edge-look", str(tmp_path / "a.png"), "--poses",
+                              str(tmp_path / "poses.csv"), "--out", str(tmp_path / "l.json")])
+    assert res.exit_code == 2 and "1 images but 2 poses" in res.output

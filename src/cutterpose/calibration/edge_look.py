@@ -30,10 +30,10 @@ continuous parameters to that:
   ``dm+b`` chooses them, and held during a round; rounds repeat until they no longer change.
 * **Uncertainty**: the cluster-robust ("sandwich") covariance with images as clusters (Liang and
   Zeger 1986): ``H^-1 (sum_i g_i g_i^T) H^-1``, ``H`` the Gauss-Newton Hessian, ``g_i`` image
-  ``i``'s score. It knows that segments of one image share its light, steel and defocus. Times
-  the number of images it is the spread of one image's look about the calibrated one: the
-  budget's variants (:meth:`EdgeLookCalibration.band_looks`) are the calibrated look moved by
-  +-1 sd along that covariance's two main axes.
+  ``i``'s score. It knows that segments of one image share its light, steel and defocus (times
+  the number of images: the spread of one image's own look, reported). The budget's variants
+  (:meth:`EdgeLookCalibration.band_looks`) are the calibrated look moved by +-1 sd along the
+  covariance's two main axes; ``dm+b`` weighs each by its relative likelihood on the image.
 * **Check** (:func:`shift_at_truth`): at the known poses, ``dm+b``'s profile fit with the shift
   free, for the generic looks and the calibrated one: the mean design-edge shift per image is
   the bias the look leaves.
@@ -94,9 +94,11 @@ _UPPER = np.array([math.log(20.0), math.log(1000.0), 2.0, 2.0])
 #: soft-L1 scale of the normalised residuals: a segment whose cost is beyond ~4x the image's
 #: median is down-weighted
 F_SCALE = 2.0
+#: the largest normalised residual of a segment (a look that cannot fit it at all)
+MAX_RESIDUAL = 10 * F_SCALE
 #: rounds of (shape and blur per image, then the fit); stops early when they hold
 ROUNDS = 3
-#: the budget's variants: +-1 sd along this many main axes of the per-image covariance
+#: the budget's variants: +-1 sd along this many main axes of the calibration's covariance
 N_VARIANT_AXES = 2
 #: the steps of the central differences of the covariance (fit coordinates): the profiled cost
 #: is rough on small scales (each segment's best radius jumps between grid nodes, float32
@@ -214,12 +216,15 @@ def _shift0_costs(ref: ReferenceImage, view: em.EdgeView, look: em.EdgeLook, blu
     cost = profile_costs(ref.profiles, view, looks, radii, (0.0,))[0][..., 0]
     out = [_profiled(np.where(np.isfinite(c), c, 1e300), radii) for c in cost]
     c = np.array([o[0] for o in out])
+    c[c >= 1e299] = np.inf          # no radius with a positive gain (see _residuals)
     c[:, ~ref.profiles.valid] = np.inf
     return c, np.array([o[1] for o in out])
 
 
-def _trimmed(c: np.ndarray) -> float:
-    c = np.sort(c[np.isfinite(c)])
+def _trimmed(c: np.ndarray, valid: np.ndarray) -> float:
+    """The best 75 % of the sampled segments' costs (``dm+b``'s look choice); a segment the
+    look cannot fit counts as infinite, not as missing."""
+    c = np.sort(c[valid])
     return float(c[: max(1, int(math.ceil(0.75 * len(c))))].sum()) if len(c) else math.inf
 
 
@@ -233,7 +238,7 @@ def _choose(ref: ReferenceImage, view, x, base, blurs, shapes
     for s in ([ref.shape] if ref.shape else shapes):
         c, r = _shift0_costs(ref, view, replace(_look_of(x, base), shape=s), blurs)
         for b, cb, rb in zip(blurs, c, r):
-            t = _trimmed(cb)
+            t = _trimmed(cb, ref.profiles.valid)
             if t < cost:
                 fin = rb[np.isfinite(cb)]
                 top = float(np.percentile(fin, 90)) if len(fin) else CAL_RADII_MM[-1]
@@ -269,9 +274,9 @@ class EdgeLookCalibration:
                 "wall_albedo": sd[2], "pocket_level": sd[3]}
 
     def variants(self, n_axes: int = N_VARIANT_AXES) -> tuple[em.EdgeLook, ...]:
-        """The calibrated look moved by +-1 sd along the ``n_axes`` main axes of the per-image
-        covariance (inside the fit's bounds)."""
-        cov = np.asarray(self.cov_image, float)
+        """The calibrated look moved by +-1 sd along the ``n_axes`` main axes of the
+        calibration's covariance (``cov_mean``; inside the fit's bounds)."""
+        cov = np.asarray(self.cov_mean, float)
         if not np.all(np.isfinite(cov)):
             return ()
         val, vec = np.linalg.eigh(cov)
@@ -305,13 +310,18 @@ class EdgeLookCalibration:
 
 
 def _residuals(x, refs, views, choice, scale, base):
+    """Each segment's ``sqrt(C_s / c_i)`` (module doc), at most :data:`MAX_RESIDUAL`; a sampled
+    segment the look cannot fit at all (no radius with a positive gain) counts as that maximum,
+    so that a look gains nothing by losing segments; unsampled segments are 0."""
     out = []
     for ref, view, (shape, blur, radii), c0 in zip(refs, views, choice, scale):
         c, _ = _shift0_costs(ref, view, replace(_look_of(x, base), shape=shape), (blur,),
                              radii)
         c = c[0]
-        r = np.sqrt(np.clip(np.where(np.isfinite(c), c, 0.0), 0, None) / c0)
-        out.append(r)
+        with np.errstate(invalid="ignore"):
+            r = np.sqrt(np.clip(c, 0, None) / c0)
+        r = np.where(np.isfinite(r), np.minimum(r, MAX_RESIDUAL), MAX_RESIDUAL)
+        out.append(np.where(ref.profiles.valid, r, 0.0))
     return np.concatenate(out)
 
 
@@ -425,7 +435,7 @@ def calibrate_edge_look(refs: list[ReferenceImage], start: em.EdgeLook | None = 
     end_cost = []
     for ref, view, (s, b, _) in zip(refs, views, choice):
         c, _ = _shift0_costs(ref, view, replace(look, shape=s), (b,))
-        end_cost.append(_trimmed(c[0]))
+        end_cost.append(_trimmed(c[0], ref.profiles.valid))
     report = {"images": len(refs), "segments": n_ok,
               "cost_ratio_to_start": float(np.sum(end_cost) / np.sum(start_cost)),
               "per_image": [{"image": r.name, "shape": s, "blur_px": b,
