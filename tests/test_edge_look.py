@@ -16,10 +16,12 @@ from cutterpose.calibration.edge_look import (
     EdgeLookCalibration,
     ReferenceImage,
     calibrate_edge_look,
+    calibrate_offsets,
     load_edge_look,
     save_edge_look,
     shift_at_truth,
 )
+from cutterpose.calibration.edge_look import edge_look_from_dict as load_edge_look_dict
 from cutterpose.cli import app
 from cutterpose.errors import EdgeLookFileError
 from cutterpose.geometry.camera import default_camera
@@ -37,14 +39,15 @@ TRUE_LOOK = em.EdgeLook(specular=0.7, shininess=12.0, wall_albedo=0.15, pocket_l
 runner = CliRunner()
 
 
-def model_reference(pose: Pose, look: em.EdgeLook, seed: int, blur_px: float = 0.9
-                    ) -> ReferenceImage:
+def model_reference(pose: Pose, look: em.EdgeLook, seed: int, blur_px: float = 0.9,
+                    shift_mm: float = 0.0, n_seg: int = 2) -> ReferenceImage:
     """A reference image whose band profiles are the edge model's own for ``look`` at the true
-    pose (shift 0), one radius per edge (0.5-1.6 mm), a grey offset and gain per segment and
-    1 grey level of noise: the sampling geometry of ``sample_band``, the values of the model."""
+    pose (its design edge ``shift_mm`` outwards), one radius per edge (0.5-1.6 mm), a grey
+    offset and gain per segment and 1 grey level of noise: the sampling geometry of
+    ``sample_band``, the values of the model."""
     rng = np.random.default_rng(seed)
     blank = np.zeros(CAM.image_size_px[::-1], np.uint8)
-    bp = sample_band(blank, CAM, HOLDER, pose.R, pose.t_mm, n_seg=2, positions=12)
+    bp = sample_band(blank, CAM, HOLDER, pose.R, pose.t_mm, n_seg=n_seg, positions=12)
     n = len(HOLDER.corners_mm)
     r_edge = rng.uniform(0.5, 1.6, n)
     per_end = np.stack([np.roll(r_edge, 1), r_edge], axis=1)[..., None]     # (N, 2, 1)
@@ -54,10 +57,11 @@ def model_reference(pose: Pose, look: em.EdgeLook, seed: int, blur_px: float = 0
                                     [(blur_px, 0.0)], grid, STEP_PX)
     f = bp.frac[:, None]
     m = (1 - f) * bl[bp.edge, 1, 0] + f * bl[(bp.edge + 1) % n, 0, 0]    # (S, G0)
-    idx = np.rint((bp.w_px - w0[0]) / STEP_PX).astype(int)
     S = len(bp.edge)
-    y = (rng.uniform(20, 40, (S, 1)) + rng.uniform(120, 200, (S, 1)) * m[:, idx]
-         + rng.normal(0, 1.0, (S, len(idx))))
+    shift_px = shift_mm * bp.px_per_mm
+    mw = np.array([np.interp(bp.w_px - s, w0, row) for s, row in zip(shift_px, m)])
+    y = (rng.uniform(20, 40, (S, 1)) + rng.uniform(120, 200, (S, 1)) * mw
+         + rng.normal(0, 1.0, mw.shape))
     bp.values = y
     return ReferenceImage(f"model{seed}", bp, CAM, HOLDER, pose.R, pose.t_mm, "round")
 
@@ -84,6 +88,29 @@ def test_calibration_recovers_a_known_look(model_refs):
     assert abs(calibrated["mean_px"]) < abs(generic["mean_px"])
 
 
+def test_offset_calibration_recovers_a_known_offset():
+    """Profiles of the right look whose design edge lies 0.03 mm outside the true one: dm+b's fit
+    puts it there (to its scan's grid: 0.2 px steps and a parabola, ~0.01 mm), the offset
+    calibration finds the opposite offset for the fillets (none for a shape it never saw), and
+    with it the design edge comes out at the known pose again."""
+    poses = [Pose.from_euler(3, -4, 2, 10, -8, 605), Pose.from_euler(-5, 2, -3, -12, 6, 620),
+             Pose.from_euler(1, 5, 4, 4, 10, 596)]
+    refs = [model_reference(p, TRUE_LOOK, 10 + i, shift_mm=0.03, n_seg=4)
+            for i, p in enumerate(poses)]
+    cal = _calibration(specular=TRUE_LOOK.specular, shininess=TRUE_LOOK.shininess,
+                       wall_albedo=TRUE_LOOK.wall_albedo, pocket_level=TRUE_LOOK.pocket_level)
+    before = shift_at_truth(refs, cal.band_looks(), shapes=("round",))
+    cal = calibrate_offsets(refs, cal, shapes=("round",))
+    off = dict(cal.offset_mm)
+    assert set(off) == {"round"}
+    assert abs(before["mean_mm"] - 0.03) < 0.012
+    assert abs(off["round"] + before["mean_mm"]) < 0.004, off
+    after = shift_at_truth(refs, cal.band_looks(), shapes=("round",))
+    assert abs(after["mean_mm"]) < 0.004
+    back = load_edge_look_dict(cal.to_dict())
+    assert back.offset_mm == cal.offset_mm
+
+
 def _calibration(**look) -> EdgeLookCalibration:
     lk = replace(em.EdgeLook(profile_sigma_px=0.0), **look)
     x = (float(np.log(lk.specular)), float(np.log(lk.shininess)), lk.wall_albedo,
@@ -99,7 +126,9 @@ def new_holder(tmp_path_factory):
     pose = Pose.from_euler(-2, 3, -3, -12, 5, 614)
     img = render_holder(pose, CAM, HOLDER, preset("new"), seed=5, noise_seed=6).image
     cv2.imwrite(str(d / "img.png"), img)
-    cal = _calibration(specular=1.3, shininess=33.0, wall_albedo=0.2, pocket_level=0.1)
+    cal = replace(_calibration(specular=1.3, shininess=33.0, wall_albedo=0.2,
+                               pocket_level=0.1),
+                  offset_mm=(("chamfer", 0.02), ("round", -0.01)))
     save_edge_look(cal, d / "look.json")
     return pose, img, cal, d
 
@@ -154,6 +183,8 @@ def _good_dict():
                                    for i in range(4)]), "cov_image"),
     (lambda d: d.update(blurs_px=[]), "blurs_px"),
     (lambda d: d.update(x=[0.0, 1.0]), "'x'"),
+    (lambda d: d.update(design_edge_offset_mm={"square": 0.01}), "design_edge_offset_mm"),
+    (lambda d: d.update(design_edge_offset_mm={"round": 3.0}), "design_edge_offset_mm"),
 ])
 def test_malformed_look_file_is_a_typed_error(tmp_path, change, words):
     d = _good_dict()

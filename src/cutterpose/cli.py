@@ -817,6 +817,9 @@ def calibrate_edge_look_cmd(
                                    "chamfer, or unknown (chosen per image by cost); with a "
                                    "rendered set, 'truth' takes each image's from truth.json."),
     limit: int = typer.Option(None, help="Only the first N images of a set."),
+    offsets: bool = typer.Option(True, "--offsets/--no-offsets", help="Also calibrate, per "
+                                 "shape, the design-edge offset the look still leaves at the "
+                                 "known poses."),
     json_out: bool = typer.Option(False, "--json", help="Print the file's content as JSON."),
 ):
     """Calibrate dm+b's edge look on a reference holder at known poses (docs/notes/edge_band.md):
@@ -827,6 +830,7 @@ def calibrate_edge_look_cmd(
 
     from .calibration.edge_look import (
         calibrate_edge_look,
+        calibrate_offsets,
         load_reference_images,
         load_reference_set,
         save_edge_look,
@@ -859,6 +863,9 @@ def calibrate_edge_look_cmd(
     log(f"{len(refs)} reference images; fitting the look with the design edge at the known "
         "poses")
     cal = calibrate_edge_look(refs, progress=log)
+    if offsets:
+        log("the design-edge offset per shape at the known poses")
+        cal = calibrate_offsets(refs, cal)
     log("checking: the design-edge shift at the known poses, generic and calibrated looks")
     check = {"generic": shift_at_truth(refs), "calibrated": shift_at_truth(refs,
                                                                             cal.band_looks())}
@@ -874,6 +881,9 @@ def calibrate_edge_look_cmd(
         typer.echo(f"  {k}: {getattr(lk, k):.4g} +- {sd[k]:.2g}")
     typer.echo(f"  residual cost: {cal.report['cost_ratio_to_start']:.3f} of the nominal look's "
                "(shift 0)")
+    sd_off = dict(cal.offset_sd_mm)
+    for shape, o in cal.offset_mm:
+        typer.echo(f"  design-edge offset ({shape}): {o:+.4f} +- {sd_off[shape]:.4f} mm")
     for name, c in check.items():
         typer.echo(f"  {name} look at the known poses: design-edge shift {c['mean_px']:+.3f} px "
                    f"({c['mean_mm']:+.4f} mm), sd of image means {c['sd_of_image_means_px']:.3f}"

@@ -68,6 +68,7 @@ from scipy.optimize import minimize
 from ..errors import EdgeLookFileError, InputError
 from ..geometry.camera import Camera
 from ..geometry.holder import Holder
+from ..geometry.pose import Pose
 from ..image import edge_model as em
 from ..image.edge_band import (
     BLURS_PX,
@@ -79,10 +80,16 @@ from ..image.edge_band import (
     sample_band,
 )
 from ..image_set import load_image_set
-from ..solvers.edge_band import POSITIONS_PER_SEGMENT, SEGMENTS_PER_EDGE
+from ..solvers.edge_band import (
+    MIN_SD_PX,
+    POSITIONS_PER_SEGMENT,
+    SEGMENTS_PER_EDGE,
+    fit_pose_design_points,
+)
 
 __all__ = ["ReferenceImage", "EdgeLookCalibration", "reference_image", "load_reference_set",
-           "load_reference_images", "calibrate_edge_look", "shift_at_truth", "save_edge_look",
+           "load_reference_images", "calibrate_edge_look", "calibrate_offsets",
+           "shift_at_truth", "save_edge_look",
            "load_edge_look", "PARAM_NAMES", "FORMAT"]
 
 FORMAT = "cutterpose-edge-look"
@@ -94,6 +101,11 @@ _UPPER = np.array([math.log(20.0), math.log(1000.0), 2.0, 2.0])
 #: soft-L1 scale of the normalised residuals: a segment whose cost is beyond ~4x the image's
 #: median is down-weighted
 F_SCALE = 2.0
+#: the uniform outward offset (mm) of the design-edge points by which the offset calibration
+#: differentiates the pose (it is linear in it)
+OFFSET_STEP_MM = 0.02
+#: the fewest reference images of a shape for its offset
+MIN_OFFSET_IMAGES = 3
 #: the largest normalised residual of a segment (a look that cannot fit it at all)
 MAX_RESIDUAL = 10 * F_SCALE
 #: rounds of (shape and blur per image, then the fit); stops early when they hold
@@ -264,6 +276,10 @@ class EdgeLookCalibration:
     cov_image: tuple[tuple[float, ...], ...]
     blurs_px: tuple[float, ...] = BLURS_PX
     report: dict = field(default_factory=dict, compare=False, hash=False)
+    #: per shape, the design-edge offset (mm, outwards) the look still leaves at the known
+    #: poses (:func:`calibrate_offsets`), and its 1-sigma
+    offset_mm: tuple[tuple[str, float], ...] = ()
+    offset_sd_mm: tuple[tuple[str, float], ...] = ()
 
     def sd(self, per_image: bool = False) -> dict:
         """1-sigma of each fitted parameter in its natural unit (delta method through the log
@@ -292,7 +308,8 @@ class EdgeLookCalibration:
 
     def band_looks(self) -> BandLooks:
         """What ``dm+b`` fits (:class:`~cutterpose.image.edge_band.BandLooks`)."""
-        return BandLooks(self.look, self.variants(), tuple(self.blurs_px))
+        return BandLooks(self.look, self.variants(), tuple(self.blurs_px),
+                         tuple(self.offset_mm))
 
     def to_dict(self) -> dict:
         lk = self.look
@@ -306,6 +323,8 @@ class EdgeLookCalibration:
                 "cov_mean": [list(r) for r in self.cov_mean],
                 "cov_image": [list(r) for r in self.cov_image],
                 "sd": self.sd(), "sd_per_image": self.sd(per_image=True),
+                "design_edge_offset_mm": dict(self.offset_mm),
+                "design_edge_offset_sd_mm": dict(self.offset_sd_mm),
                 "report": self.report}
 
 
@@ -450,6 +469,53 @@ def calibrate_edge_look(refs: list[ReferenceImage], start: em.EdgeLook | None = 
                                tuple(float(b) for b in blurs), report)
 
 
+def calibrate_offsets(refs: list[ReferenceImage], cal: EdgeLookCalibration,
+                      shapes=("round", "chamfer")) -> EdgeLookCalibration:
+    """The design-edge offset per shape that the calibrated look still leaves (module doc):
+    ``dm+b``'s profile fit at each known pose with the look (shape chosen by cost, as at run
+    time), its pose fitted from the true pose to the design-edge points, and the uniform
+    outward offset ``delta`` of those points that zeroes the Z error in least squares over
+    the images of that shape (a uniform offset is what the pose cannot tell from depth, and Z
+    is what it moves). A shape seen on fewer than :data:`MIN_OFFSET_IMAGES` reference images
+    (by its fit: a worn fillet may pass for a chamfer) keeps no offset."""
+    looks = replace(cal.band_looks(), offset_mm=())
+    per: dict = {}
+    for ref in refs:
+        f = fit_band(ref.profiles, ref.camera, ref.holder, ref.R_cam_holder,
+                     ref.t_cam_holder_mm, shapes, looks=looks)
+        v = (ref.profiles.valid & np.isfinite(f.best.shift_var_px2)
+             & (f.best.shift_var_px2 >= 0))
+        if v.sum() < 6:
+            continue
+        sd = np.maximum(np.sqrt(f.best.shift_var_px2[v]), MIN_SD_PX)
+        p = f.design_points_px()[v]
+        n = ref.profiles.normals_ideal[v]
+        X = ref.profiles.points_holder_mm[v]
+        dof = Pose(ref.R_cam_holder, ref.t_cam_holder_mm).dof
+        e0 = fit_pose_design_points(p, n, X, ref.camera.K, dof, sd)[0] - dof
+        step = ref.profiles.px_per_mm[v] * OFFSET_STEP_MM
+        e1 = fit_pose_design_points(p + step[:, None] * n, n, X, ref.camera.K, dof, sd)[0] - dof
+        per.setdefault(f.best.look.shape, []).append((e0[5], (e1[5] - e0[5]) / OFFSET_STEP_MM))
+    off, sd_off, rep = [], [], {}
+    for shape, rows in sorted(per.items()):
+        if len(rows) < MIN_OFFSET_IMAGES:
+            rep[shape] = {"images": len(rows), "offset_mm": None,
+                          "note": f"fewer than {MIN_OFFSET_IMAGES} images: no offset"}
+            continue
+        e, g = np.array(rows).T
+        delta = float(-np.sum(e * g) / np.sum(g * g))
+        each = -e / g
+        sd = float(np.std(each, ddof=1) / math.sqrt(len(each)))
+        off.append((shape, delta))
+        sd_off.append((shape, sd))
+        rep[shape] = {"images": len(each), "offset_mm": delta, "sd_mm": sd,
+                      "z_error_at_truth_mm": float(np.mean(e)),
+                      "per_image_offset_mm": [float(v) for v in each]}
+    report = dict(cal.report)
+    report["design_edge_offset"] = rep
+    return replace(cal, offset_mm=tuple(off), offset_sd_mm=tuple(sd_off), report=report)
+
+
 def shift_at_truth(refs: list[ReferenceImage], looks: BandLooks | None = None,
                    shapes=("round", "chamfer")) -> dict:
     """``dm+b``'s profile fit at the known poses with the shift free: per image the mean
@@ -539,7 +605,21 @@ def edge_look_from_dict(d, where: str = "edge look") -> EdgeLookCalibration:
                                _matrix(d, "cov_mean", n, where),
                                _matrix(d, "cov_image", n, where),
                                tuple(float(b) for b in blurs),
-                               d.get("report") if isinstance(d.get("report"), dict) else {})
+                               d.get("report") if isinstance(d.get("report"), dict) else {},
+                               _offsets(d, "design_edge_offset_mm", where),
+                               _offsets(d, "design_edge_offset_sd_mm", where))
+
+
+def _offsets(d: dict, key: str, where: str) -> tuple:
+    """An optional ``{shape: mm}`` object (a calibrated offset is a fraction of a mm)."""
+    o = d.get(key, {})
+    if not isinstance(o, dict) or not all(
+            k in ("round", "chamfer") and isinstance(v, (int, float))
+            and not isinstance(v, bool) and math.isfinite(v) and abs(v) <= 1.0
+            for k, v in o.items()):
+        raise EdgeLookFileError(f"{where}: '{key}' must map 'round' / 'chamfer' to finite "
+                                "offsets within +-1 mm")
+    return tuple((k, float(v)) for k, v in sorted(o.items()))
 
 
 def load_edge_look(path) -> EdgeLookCalibration:

@@ -97,15 +97,21 @@ class BandLooks:
     shape is still chosen per image by the profiles' cost, the blur among ``blurs_px``);
     ``variants``: looks round it (the calibration's uncertainty) that are never chosen, only
     fitted for the error budget's edge-model term, each weighted by its relative likelihood as
-    the generic plausible looks are.
+    the generic plausible looks are. ``offset_mm``: per shape, the design-edge offset the look
+    still leaves at the known poses (mm outwards in the face plane), added to every fitted
+    shift of that shape (times the segment's px per mm).
     """
 
     look: em.EdgeLook
     variants: tuple[em.EdgeLook, ...] = ()
     blurs_px: tuple[float, ...] = BLURS_PX
+    offset_mm: tuple[tuple[str, float], ...] = ()
 
     def for_shape(self, shape: str) -> em.EdgeLook:
         return replace(self.look, shape=shape, profile_sigma_px=0.0)
+
+    def offset_px(self, shape: str, px_per_mm: np.ndarray) -> np.ndarray:
+        return dict(self.offset_mm).get(shape, 0.0) * np.asarray(px_per_mm, float)
 
 
 def band_looks(shapes=("round", "chamfer")) -> list[em.EdgeLook]:
@@ -440,7 +446,8 @@ def _fit_looks(bp: BandProfiles, bank: _ModelBank, looks, coarse: LookFit | None
 
 def _look_fit(bp: BandProfiles, look, r, s, c, g, var) -> LookFit:
     c = np.where(bp.valid, c, np.inf)
-    rms = np.sqrt(c / len(bp.w_px))
+    with np.errstate(invalid="ignore"):     # a float32 cancellation may leave c < 0: NaN
+        rms = np.sqrt(c / len(bp.w_px))
     var = np.where(bp.valid, var, np.inf)
     return LookFit(look, r, s, c, g, rms, _trimmed_total(c, bp.valid), var)
 
@@ -519,7 +526,7 @@ def fit_band(bp: BandProfiles, camera: Camera, holder: Holder, R_cam_holder, t_c
         for lf in [previous.best] + previous.plausible:
             c = _fit_looks(bp, bank, [lf.look], shift_range_px=2.0)[0]
             out.append(_fit_looks(bp, bank, [lf.look], c)[0])
-        return BandFit(out[0], out[1:], bp)
+        return _offset(BandFit(out[0], out[1:], bp), looks)
     # the look is chosen on every other segment (with 40 or more): the coarse scans of all
     # looks are the fit's main cost, and a shared look needs no more
     sub = _subset(bp, np.arange(0, len(bp.edge), 2)) if len(bp.edge) >= 40 else bp
@@ -557,7 +564,26 @@ def fit_band(bp: BandProfiles, camera: Camera, holder: Holder, R_cam_holder, t_c
                 plausible.append(_fit_looks(bp, bank, [lk], _fit_looks(bp, bank, [lk])[0])[0])
             else:
                 plausible.append(replace(best, look=lk))
-    return BandFit(best, plausible, bp)
+    return _offset(BandFit(best, plausible, bp), looks)
+
+
+def _offset(fit: BandFit, looks: BandLooks | None) -> BandFit:
+    """The calibrated design-edge offsets (:attr:`BandLooks.offset_mm`) added to every look's
+    shifts (none without a calibration)."""
+    if looks is None or not looks.offset_mm:
+        return fit
+    px = fit.profiles.px_per_mm
+
+    def moved(lf: LookFit) -> LookFit:
+        # a first pass's plausible look may stand on the coarse scan of a subset of the
+        # segments (only its look is used): left as it is
+        if len(lf.shift_px) != len(px):
+            return lf
+        return replace(lf, shift_px=lf.shift_px + looks.offset_px(lf.look.shape, px))
+
+    fit.best = moved(fit.best)
+    fit.plausible = [moved(lf) for lf in fit.plausible]
+    return fit
 
 
 def profile_costs(bp: BandProfiles, view: em.EdgeView, looks, radii_mm=CAL_RADII_MM,

@@ -153,7 +153,7 @@ def _sd(lf) -> np.ndarray:
 
 
 def _pose_of(fit: BandFit, lf, X, n_img, K, dof0, valid):
-    v = valid & np.isfinite(lf.shift_var_px2)
+    v = valid & np.isfinite(lf.shift_var_px2) & (lf.shift_var_px2 >= 0)
     if v.sum() < 6:
         return np.full(6, np.inf)
     p = fit.design_points_px(lf)[v]
@@ -206,7 +206,9 @@ def measure_band(image, camera: Camera, holder: Holder, start: PoseEstimate,
             fit = fit_band(bp, camera, holder, R, dof[3:], shapes,
                            previous=fit if passes > 1 else None, fine_plausible=last,
                            looks=looks)
-            valid &= np.isfinite(fit.best.cost) & np.isfinite(fit.best.shift_var_px2)
+            # (a variance below 0: a float32 cancellation in a near-perfect fit's cost)
+            valid &= (np.isfinite(fit.best.cost) & np.isfinite(fit.best.shift_var_px2)
+                      & (fit.best.shift_var_px2 >= 0))
             if valid.sum() < MIN_SEGMENT_FRACTION * len(valid):
                 return PoseEstimate.failure(
                     "dm+b", f"the band's profile fixes the design edge on {int(valid.sum())} "
