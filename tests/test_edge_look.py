@@ -128,14 +128,19 @@ def new_holder(tmp_path_factory):
     cv2.imwrite(str(d / "img.png"), img)
     cal = replace(_calibration(specular=1.3, shininess=33.0, wall_albedo=0.2,
                                pocket_level=0.1),
-                  offset_mm=(("chamfer", 0.02), ("round", -0.01)))
+                  offset_mm=(("chamfer", 0.02), ("round", -0.01)),
+                  offset_scatter_mm=(("chamfer", 0.03), ("round", 0.03)))
     save_edge_look(cal, d / "look.json")
     return pose, img, cal, d
 
 
 def test_edge_look_changes_the_fitted_look(new_holder):
-    """``measure(edge_look=...)``: dm+b fits the calibrated look (and its variants for the
-    budget) instead of the generic ones; without it, a generic look as before."""
+    """``measure(edge_look=...)``: dm+b fits the calibrated look instead of the generic ones
+    (without it, a generic look as before), and the budget's edge-model term carries the
+    calibration's offset scatter; given the variants too, they are fitted for the budget."""
+    from cutterpose.image import FeatureParams, detect_features
+    from cutterpose.solvers.edge_band import refine_features
+
     pose, img, cal, _ = new_holder
     limits = QualityLimits(edge_shape="unknown")
     plain = measure(img, CAM, HOLDER, method="dm+b", limits=limits)
@@ -146,15 +151,20 @@ def test_edge_look_changes_the_fitted_look(new_holder):
     assert not b0.calibrated
     assert b1.calibrated
     assert (b1.fit.best.look.specular, b1.fit.best.look.shininess) == (1.3, 33.0)
-    # the variants round it enter the budget's edge-model term
-    varied = [lf.look for lf in b1.fit.plausible if lf.look.shape == b1.fit.best.look.shape]
+    parts = calib.quality.budget.to_dict()["parts"]
+    assert parts["edge model"]["position_3sigma_mm"] > 0.01
+    # the variants round the look (band_looks(variant_axes=...)) enter the edge-model term
+    feats = detect_features(img, CAM, HOLDER, FeatureParams.for_camera(CAM))
+    start = plain.estimate.info["start"]
+    est = refine_features(start, feats, CAM, HOLDER, edge_look=cal.band_looks(variant_axes=2))
+    b2 = est.info["band"]
+    varied = [lf.look for lf in b2.fit.plausible if lf.look.shape == b2.fit.best.look.shape]
     assert len(varied) >= 2
 
     def photometry(v):
         return v.specular, v.shininess, v.wall_albedo, v.pocket_level
 
-    assert all(photometry(v) != photometry(b1.fit.best.look) for v in varied)
-    assert calib.pose is not None
+    assert all(photometry(v) != photometry(b2.fit.best.look) for v in varied)
 
 
 def test_cli_edge_look_option(new_holder):

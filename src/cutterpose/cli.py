@@ -887,7 +887,9 @@ def calibrate_edge_look_cmd(
     for name, c in check.items():
         typer.echo(f"  {name} look at the known poses: design-edge shift {c['mean_px']:+.3f} px "
                    f"({c['mean_mm']:+.4f} mm), sd of image means {c['sd_of_image_means_px']:.3f}"
-                   f" px, segment sd {c['segment_sd_px']:.3f} px")
+                   f" px, segment sd {c['segment_sd_px']:.3f} px; Z error of the pose fitted "
+                   f"from the known pose {c['z_error_mean_mm']:+.3f} +- "
+                   f"{c['z_error_sd_mm'] or 0.0:.3f} mm")
     typer.echo(f"wrote {out}")
 
 

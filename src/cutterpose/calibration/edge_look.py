@@ -31,9 +31,21 @@ continuous parameters to that:
 * **Uncertainty**: the cluster-robust ("sandwich") covariance with images as clusters (Liang and
   Zeger 1986): ``H^-1 (sum_i g_i g_i^T) H^-1``, ``H`` the Gauss-Newton Hessian, ``g_i`` image
   ``i``'s score. It knows that segments of one image share its light, steel and defocus (times
-  the number of images: the spread of one image's own look, reported). The budget's variants
-  (:meth:`EdgeLookCalibration.band_looks`) are the calibrated look moved by +-1 sd along the
-  covariance's two main axes; ``dm+b`` weighs each by its relative likelihood on the image.
+  the number of images: the spread of one image's own look, reported). Looks at +-1 sd along
+  its main axes (:meth:`EdgeLookCalibration.variants`) can enter the budget, but do not by
+  default (below).
+* **Offset** (:func:`calibrate_offsets`): the look is fitted to the profiles' shape; where a
+  look of this family puts the design edge can still be off by a few hundredths of a mm (on the
+  path-traced ``new`` set: chamfers 0.04 mm, fillets 0.005 mm). At each known pose ``dm+b``'s
+  fit with the calibrated look gives the design-edge points, the pose is fitted to them from the
+  true pose, and per shape the uniform outward offset that zeroes the Z error in least squares
+  is taken (a uniform offset is what the pose cannot tell from depth). ``dm+b`` adds it to every
+  fitted shift of that shape. The offsets' scatter over the reference images is how far one
+  image's design edge may still be off: the budget's edge-model term with a calibration (the
+  pose change for a uniform shift by it). It is measured, where the variants only propagate
+  the parameters' uncertainty through a model that does not fit: on three worn images the
+  variants (worn calibration) made the edge-model term 0.66-0.78 mm at 3 sigma, the measured
+  scatter 0.39-0.52 mm.
 * **Check** (:func:`shift_at_truth`): at the known poses, ``dm+b``'s profile fit with the shift
   free, for the generic looks and the calibrated one: the mean design-edge shift per image is
   the bias the look leaves.
@@ -280,6 +292,9 @@ class EdgeLookCalibration:
     #: poses (:func:`calibrate_offsets`), and its 1-sigma
     offset_mm: tuple[tuple[str, float], ...] = ()
     offset_sd_mm: tuple[tuple[str, float], ...] = ()
+    #: per shape, the offsets' scatter over the reference images (1 sigma, mm): how far one
+    #: image's design edge may be off after the calibration (the budget's edge-model term)
+    offset_scatter_mm: tuple[tuple[str, float], ...] = ()
 
     def sd(self, per_image: bool = False) -> dict:
         """1-sigma of each fitted parameter in its natural unit (delta method through the log
@@ -306,10 +321,15 @@ class EdgeLookCalibration:
                                     self.look))
         return tuple(out)
 
-    def band_looks(self) -> BandLooks:
-        """What ``dm+b`` fits (:class:`~cutterpose.image.edge_band.BandLooks`)."""
-        return BandLooks(self.look, self.variants(), tuple(self.blurs_px),
-                         tuple(self.offset_mm))
+    def band_looks(self, variant_axes: int = 0) -> BandLooks:
+        """What ``dm+b`` fits (:class:`~cutterpose.image.edge_band.BandLooks`): the look, its
+        offsets and their scatter; with ``variant_axes`` > 0 also :meth:`variants` for the
+        budget (not by default: the offsets' measured scatter stands for what the look leaves,
+        module doc)."""
+        scatter = tuple((k, float(np.hypot(v, dict(self.offset_sd_mm).get(k, 0.0))))
+                        for k, v in self.offset_scatter_mm)
+        return BandLooks(self.look, self.variants(variant_axes) if variant_axes else (),
+                         tuple(self.blurs_px), tuple(self.offset_mm), scatter)
 
     def to_dict(self) -> dict:
         lk = self.look
@@ -325,6 +345,7 @@ class EdgeLookCalibration:
                 "sd": self.sd(), "sd_per_image": self.sd(per_image=True),
                 "design_edge_offset_mm": dict(self.offset_mm),
                 "design_edge_offset_sd_mm": dict(self.offset_sd_mm),
+                "design_edge_offset_scatter_mm": dict(self.offset_scatter_mm),
                 "report": self.report}
 
 
@@ -469,6 +490,20 @@ def calibrate_edge_look(refs: list[ReferenceImage], start: em.EdgeLook | None = 
                                tuple(float(b) for b in blurs), report)
 
 
+def _pose_error_at_truth(ref: ReferenceImage, f, offset_mm: float = 0.0):
+    """(6,) error of the pose fitted (as ``dm+b`` fits it, from the true pose) to the fit's
+    design-edge points moved outwards by ``offset_mm``; None with fewer than 6 points."""
+    v = ref.profiles.valid & np.isfinite(f.best.shift_var_px2) & (f.best.shift_var_px2 >= 0)
+    if v.sum() < 6:
+        return None
+    sd = np.maximum(np.sqrt(f.best.shift_var_px2[v]), MIN_SD_PX)
+    n = ref.profiles.normals_ideal[v]
+    p = f.design_points_px()[v] + (offset_mm * ref.profiles.px_per_mm[v])[:, None] * n
+    dof = Pose(ref.R_cam_holder, ref.t_cam_holder_mm).dof
+    return fit_pose_design_points(p, n, ref.profiles.points_holder_mm[v], ref.camera.K, dof,
+                                  sd)[0] - dof
+
+
 def calibrate_offsets(refs: list[ReferenceImage], cal: EdgeLookCalibration,
                       shapes=("round", "chamfer")) -> EdgeLookCalibration:
     """The design-edge offset per shape that the calibrated look still leaves (module doc):
@@ -483,20 +518,12 @@ def calibrate_offsets(refs: list[ReferenceImage], cal: EdgeLookCalibration,
     for ref in refs:
         f = fit_band(ref.profiles, ref.camera, ref.holder, ref.R_cam_holder,
                      ref.t_cam_holder_mm, shapes, looks=looks)
-        v = (ref.profiles.valid & np.isfinite(f.best.shift_var_px2)
-             & (f.best.shift_var_px2 >= 0))
-        if v.sum() < 6:
+        e0 = _pose_error_at_truth(ref, f)
+        if e0 is None:
             continue
-        sd = np.maximum(np.sqrt(f.best.shift_var_px2[v]), MIN_SD_PX)
-        p = f.design_points_px()[v]
-        n = ref.profiles.normals_ideal[v]
-        X = ref.profiles.points_holder_mm[v]
-        dof = Pose(ref.R_cam_holder, ref.t_cam_holder_mm).dof
-        e0 = fit_pose_design_points(p, n, X, ref.camera.K, dof, sd)[0] - dof
-        step = ref.profiles.px_per_mm[v] * OFFSET_STEP_MM
-        e1 = fit_pose_design_points(p + step[:, None] * n, n, X, ref.camera.K, dof, sd)[0] - dof
+        e1 = _pose_error_at_truth(ref, f, OFFSET_STEP_MM)
         per.setdefault(f.best.look.shape, []).append((e0[5], (e1[5] - e0[5]) / OFFSET_STEP_MM))
-    off, sd_off, rep = [], [], {}
+    off, sd_off, scatter, rep = [], [], [], {}
     for shape, rows in sorted(per.items()):
         if len(rows) < MIN_OFFSET_IMAGES:
             rep[shape] = {"images": len(rows), "offset_mm": None,
@@ -505,22 +532,27 @@ def calibrate_offsets(refs: list[ReferenceImage], cal: EdgeLookCalibration,
         e, g = np.array(rows).T
         delta = float(-np.sum(e * g) / np.sum(g * g))
         each = -e / g
-        sd = float(np.std(each, ddof=1) / math.sqrt(len(each)))
+        spread = float(np.std(each, ddof=1))
+        sd = spread / math.sqrt(len(each))
         off.append((shape, delta))
         sd_off.append((shape, sd))
+        scatter.append((shape, spread))
         rep[shape] = {"images": len(each), "offset_mm": delta, "sd_mm": sd,
+                      "scatter_mm": spread,
                       "z_error_at_truth_mm": float(np.mean(e)),
                       "per_image_offset_mm": [float(v) for v in each]}
     report = dict(cal.report)
     report["design_edge_offset"] = rep
-    return replace(cal, offset_mm=tuple(off), offset_sd_mm=tuple(sd_off), report=report)
+    return replace(cal, offset_mm=tuple(off), offset_sd_mm=tuple(sd_off),
+                   offset_scatter_mm=tuple(scatter), report=report)
 
 
 def shift_at_truth(refs: list[ReferenceImage], looks: BandLooks | None = None,
                    shapes=("round", "chamfer")) -> dict:
     """``dm+b``'s profile fit at the known poses with the shift free: per image the mean
-    design-edge shift (px and mm) over the segments it uses, and over all images the mean and
-    sd of those means and of the segments (``looks`` None: the generic looks)."""
+    design-edge shift (px and mm) over the segments it uses and the Z error of the pose fitted
+    to its design-edge points from the true pose; over all images the mean and sd of those
+    (``looks`` None: the generic looks)."""
     per, seg_px, seg_mm = [], [], []
     for ref in refs:
         f = fit_band(ref.profiles, ref.camera, ref.holder, ref.R_cam_holder,
@@ -530,10 +562,13 @@ def shift_at_truth(refs: list[ReferenceImage], looks: BandLooks | None = None,
         mm = s / ref.profiles.px_per_mm[v]
         seg_px.append(s)
         seg_mm.append(mm)
+        e = _pose_error_at_truth(ref, f)
         per.append({"image": ref.name, "shape": f.best.look.shape,
                     "blur_px": f.best.look.blur_sigma_px, "segments": int(v.sum()),
                     "mean_px": float(s.mean()) if len(s) else None,
-                    "mean_mm": float(mm.mean()) if len(s) else None})
+                    "mean_mm": float(mm.mean()) if len(s) else None,
+                    "z_error_mm": None if e is None else float(e[5])})
+    z = np.array([p["z_error_mm"] for p in per if p["z_error_mm"] is not None])
     means = np.array([p["mean_px"] for p in per if p["mean_px"] is not None])
     means_mm = np.array([p["mean_mm"] for p in per if p["mean_mm"] is not None])
     a, b = np.concatenate(seg_px), np.concatenate(seg_mm)
@@ -541,7 +576,9 @@ def shift_at_truth(refs: list[ReferenceImage], looks: BandLooks | None = None,
             if len(means) > 1 else 0.0, "mean_mm": float(means_mm.mean()),
             "sd_of_image_means_mm": float(means_mm.std(ddof=1)) if len(means_mm) > 1 else 0.0,
             "segment_sd_px": float(a.std()), "segment_median_px": float(np.median(a)),
-            "segment_mean_mm": float(b.mean()), "per_image": per}
+            "segment_mean_mm": float(b.mean()),
+            "z_error_mean_mm": float(z.mean()) if len(z) else None,
+            "z_error_sd_mm": float(z.std(ddof=1)) if len(z) > 1 else None, "per_image": per}
 
 
 def save_edge_look(cal: EdgeLookCalibration, path) -> None:
@@ -607,7 +644,8 @@ def edge_look_from_dict(d, where: str = "edge look") -> EdgeLookCalibration:
                                tuple(float(b) for b in blurs),
                                d.get("report") if isinstance(d.get("report"), dict) else {},
                                _offsets(d, "design_edge_offset_mm", where),
-                               _offsets(d, "design_edge_offset_sd_mm", where))
+                               _offsets(d, "design_edge_offset_sd_mm", where),
+                               _offsets(d, "design_edge_offset_scatter_mm", where))
 
 
 def _offsets(d: dict, key: str, where: str) -> tuple:

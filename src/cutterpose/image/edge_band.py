@@ -99,13 +99,16 @@ class BandLooks:
     fitted for the error budget's edge-model term, each weighted by its relative likelihood as
     the generic plausible looks are. ``offset_mm``: per shape, the design-edge offset the look
     still leaves at the known poses (mm outwards in the face plane), added to every fitted
-    shift of that shape (times the segment's px per mm).
+    shift of that shape (times the segment's px per mm); ``offset_scatter_mm``: per shape,
+    how far one image's design edge may still be off (1 sigma, mm: the offset's scatter over
+    the reference images), the budget's edge-model term.
     """
 
     look: em.EdgeLook
     variants: tuple[em.EdgeLook, ...] = ()
     blurs_px: tuple[float, ...] = BLURS_PX
     offset_mm: tuple[tuple[str, float], ...] = ()
+    offset_scatter_mm: tuple[tuple[str, float], ...] = ()
 
     def for_shape(self, shape: str) -> em.EdgeLook:
         return replace(self.look, shape=shape, profile_sigma_px=0.0)

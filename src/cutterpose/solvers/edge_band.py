@@ -227,10 +227,22 @@ def measure_band(image, camera: Camera, holder: Holder, start: PoseEstimate,
         cov_noise = np.full((6, 6), np.inf)
     X, n_img = bp.points_holder_mm, bp.normals_ideal
     cov_model = _look_spread(fit, X, n_img, K, dof, valid)
+
+    def uniform(shift_mm: float) -> np.ndarray:
+        """The pose change for a uniform outward shift of every design point (mm)."""
+        p_shift = (fit.design_points_px()[valid]
+                   + (shift_mm * bp.px_per_mm[valid])[:, None] * n_img[valid])
+        return fit_pose_design_points(p_shift, n_img[valid], X[valid], K, dof, sd)[0] - dof
+
+    if looks is not None:
+        # a calibrated look: the scatter of the design-edge offset over the reference images
+        # (measured at their known poses) is this image's remaining look error
+        sc = dict(looks.offset_scatter_mm).get(fit.best.look.shape)
+        if sc:
+            d_s = uniform(sc)
+            cov_model = cov_model + np.outer(d_s, d_s)
     # a uniform outward shift of the design edge by the model floor
-    floor_px = SHIFT_FLOOR_MM * bp.px_per_mm[valid]
-    p_shift = fit.design_points_px()[valid] + floor_px[:, None] * n_img[valid]
-    d_u = fit_pose_design_points(p_shift, n_img[valid], X[valid], K, dof, sd)[0] - dof
+    d_u = uniform(SHIFT_FLOOR_MM)
     parts = {"noise": cov_noise, "edge model": cov_model, "model floor": np.outer(d_u, d_u)}
     res = np.full(len(valid), np.nan)
     res[valid] = r
