@@ -24,7 +24,10 @@ The fit per segment (a third to a half of one edge, ``n_seg`` per edge):
   material, one light) and chosen by the trimmed sum of the segments' costs (on every other
   segment: the choice needs no more);
 * each segment's shift variance with its radius free, from the Hessian of the cost round its
-  minimum (:func:`_shift_variance`): the pose fit's weights.
+  minimum (:func:`_shift_variance`): the pose fit's weights;
+* a look calibrated in the cell on a reference holder at known poses (:class:`BandLooks`,
+  :mod:`cutterpose.calibration.edge_look`) replaces the generic variants: one photometry for
+  both shapes, and per shape a calibrated design-edge offset added to the fitted shifts.
 
 The result per segment: the design edge's point ``q + shift n`` (ideal px), the radius, the
 residual RMS, the gain (contrast), and the same for the other plausible looks (their spread is

@@ -19,7 +19,9 @@ The error budget (:mod:`cutterpose.budget`) gets three parts:
 * ``noise``: ``s^2 (J^T W J)^-1`` with ``s^2`` the weighted residual variance (it contains the
   per-segment variation of the break, which the model does not know);
 * ``edge model``: the poses of the other plausible looks (shape and photometry the profile fit
-  cannot rule out), mean of their outer products about the chosen pose;
+  cannot rule out), mean of their outer products about the chosen pose; with a look calibrated
+  in the cell (:mod:`cutterpose.calibration.edge_look`) also the pose change for a uniform
+  shift by the design-edge offsets' scatter measured over its reference images;
 * ``model floor``: the pose change for a uniform outward shift of every design point by
   :data:`SHIFT_FLOOR_MM` (the profile model's systematic error that no alternative look
   shows: a uniform shift is what the pose cannot tell from depth).
