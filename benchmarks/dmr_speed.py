@@ -6,6 +6,7 @@ images, one core
         [--count 10]
     PYTHONPATH=src python benchmarks/dmr_speed.py --grid   # dm+r fitted on the offset grid
     PYTHONPATH=src python benchmarks/dmr_speed.py --write-grid   # rebuild the offset grid
+    PYTHONPATH=src python benchmarks/dmr_speed.py --edge-look look.json  # + dm+b calibrated
 
 Images: ``make bench``'s image (analytic ``easy`` preset at 3,-4,2,5,-8,610), the analytic
 ``new`` preset (0.5-1.5 mm fillets) at the same pose, and the first ``count`` images of a pbr
@@ -86,7 +87,16 @@ def main() -> None:
     ap.add_argument("--write-grid", action="store_true")
     ap.add_argument("--grid", action="store_true",
                     help="dm+r on the shipped offset grid (edge_radius.TABULATED_TABLES)")
+    ap.add_argument("--edge-look", help="also dm+b with this calibrated edge look "
+                    "(`cutterpose calibrate-edge-look`), as 'dm+b/look'")
     a = ap.parse_args()
+    methods = METHODS
+    look = None
+    if a.edge_look:
+        from cutterpose.calibration.edge_look import load_edge_look
+
+        look = load_edge_look(a.edge_look)
+        methods = METHODS + ("dm+b/look",)
     if a.grid:
         from cutterpose.solvers import edge_radius
 
@@ -95,32 +105,33 @@ def main() -> None:
         write_grid()
         return
     holder = default_holder()
-    rows = {m: [] for m in METHODS}
+    rows = {m: [] for m in methods}
     for label, img, cam in _images(a.pbr, a.count):
         measure(img, cam, holder)                      # warm-up (imports, caches)
-        best = {m: (np.inf, {}, False) for m in METHODS}
+        best = {m: (np.inf, {}, False) for m in methods}
         for _ in range(a.repeats):
-            for m in METHODS:
+            for m in methods:
                 t0 = time.perf_counter()
-                res = measure(img, cam, holder, method=m)
+                res = (measure(img, cam, holder, method="dm+b", edge_look=look)
+                       if m == "dm+b/look" else measure(img, cam, holder, method=m))
                 dt = 1e3 * (time.perf_counter() - t0)
                 if dt < best[m][0]:
                     best[m] = (dt, dict(res.timings_ms), bool(res.ok))
-        for m in METHODS:
+        for m in methods:
             rows[m].append(best[m])
         print(f"{label:22s} " + "  ".join(
             f"{m}: {best[m][0]:6.1f} ms (solve {best[m][1].get('solve', np.nan):5.1f}, "
             f"quality {best[m][1].get('quality', np.nan):5.1f}, ok {best[m][2]})"
-            for m in METHODS), flush=True)
+            for m in methods), flush=True)
     print(f"\nmedian over {len(rows['dm+'])} images, fastest of {a.repeats} per image, one "
           f"thread:")
-    for m in METHODS:
+    for m in methods:
         wall = np.median([r[0] for r in rows[m]])
         st = {k: np.median([r[1].get(k, np.nan) for r in rows[m]]) for k in ("solve", "quality")}
         print(f"  {m:5s} measure {wall:6.1f} ms (target {TARGET_MS:.0f}: "
               f"{'ok' if wall <= TARGET_MS else 'SLOWER'}); solve {st['solve']:.1f} ms, "
               f"quality {st['quality']:.1f} ms")
-    for m in METHODS[1:]:
+    for m in methods[1:]:
         extra = np.median([r[0] - q[0] for r, q in zip(rows[m], rows["dm+"])])
         print(f"  {m} costs {extra:.1f} ms more than dm+ (median of the per-image differences)")
 

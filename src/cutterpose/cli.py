@@ -308,6 +308,8 @@ def measure_cmd(
                                    "drawing gives it: round, chamfer, or unknown (default: dm+b "
                                    "tells them apart; dm+r's verdict then carries the chamfer's "
                                    "depth the contour cannot see)."),
+    edge_look: str = typer.Option(None, "--edge-look", help="Edge look file from "
+                                  "`calibrate-edge-look` (dm+b fits the calibrated look)."),
     handeye: str = typer.Option(None, "--handeye", help="handeye.json: also answer in the "
                                 "robot's base frame (needs --flange-pose)."),
     flange_pose: str = typer.Option(None, "--flange-pose", help="T_base_flange at the "
@@ -340,6 +342,11 @@ def measure_cmd(
 
     cam = _render_camera(camera)
     hol = load_holder(holder) if holder else None
+    look = None
+    if edge_look:
+        from .calibration.edge_look import load_edge_look
+
+        look = load_edge_look(edge_look)
     if (handeye is None) != (flange_pose is None):
         raise InputError("the base frame needs both --handeye and --flange-pose")
     robot = None
@@ -360,7 +367,7 @@ def measure_cmd(
     from .pipeline import QualityLimits
 
     m = measure(img, cam, hol, method, params=FeatureParams.for_camera(cam, chain=chain),
-                limits=QualityLimits(edge_shape=edge_shape))
+                limits=QualityLimits(edge_shape=edge_shape), edge_look=look)
     m.timings_ms = {"load": load_ms} | m.timings_ms
     if robot is not None:
         from .robot import locate
@@ -427,6 +434,8 @@ def experiment_images_cmd(
                               "no refinement, no fall-back)."),
     edge_shape: str = typer.Option("unknown", help="The pocket edge's break (holder drawing): "
                                    "round, chamfer or unknown (default: both shapes fitted)."),
+    edge_look: str = typer.Option(None, "--edge-look", help="Edge look file from "
+                                  "`calibrate-edge-look` (dm+b fits the calibrated look)."),
 ):
     """Table 2 figures of every method on an image set (trials.csv, summary.md)."""
     from rich.progress import Progress
@@ -446,9 +455,15 @@ def experiment_images_cmd(
         task = bar.add_task("images", total=None)
         from .pipeline import QualityLimits
 
+        look = None
+        if edge_look:
+            from .calibration.edge_look import load_edge_look
+
+            look = load_edge_look(edge_look)
         run_images(folder, names, out, workers=workers, limit=limit, scheduler=scheduler,
                    params=chains[chain](), limits=QualityLimits(edge_shape=edge_shape),
-                   progress=lambda done, n: bar.update(task, completed=done, total=n))
+                   progress=lambda done, n: bar.update(task, completed=done, total=n),
+                   edge_look=look)
     typer.echo(f"wrote {out}/trials.csv, summary.md, corners.csv, failures.csv")
     typer.echo((__import__("pathlib").Path(out) / "summary.md").read_text())
 
@@ -784,6 +799,102 @@ def calibrate_cmd(
         typer.echo(f"note: {fmt} cannot hold the {res.camera.model} model; wrote the nearest "
                    f"{conv.camera.model} camera (worst pixel error {conv.max_error_px:.4f} px)")
     typer.echo(f"wrote {out} and {rep_path}")
+
+
+@app.command("calibrate-edge-look")
+@friendly
+def calibrate_edge_look_cmd(
+    source: list[str] = typer.Argument(..., help="A rendered set (folder with truth.json), or "
+                                       "images of the reference holder (files or folders) "
+                                       "with --poses."),
+    out: str = typer.Option(..., "--out", help="Edge look file to write (JSON)."),
+    poses: str = typer.Option(None, "--poses", help="T_cam_holder of each image, in order: a "
+                              "pose file (CSV or JSON, cutterpose.robot.poses conventions)."),
+    camera: str = typer.Option(None, help="table1 (default), synthetic, or a camera file "
+                               "(with --poses)."),
+    holder: str = typer.Option(None, help="Holder JSON file (with --poses; default: bundled)."),
+    convention: str = typer.Option(None, help="Convention of a --poses file that does not "
+                                   "state it."),
+    length_unit: str = typer.Option(None, help="mm or m, for a --poses file."),
+    angle_unit: str = typer.Option(None, help="deg or rad, for a --poses file."),
+    edge_shape: str = typer.Option("unknown", help="The reference holder's break: round, "
+                                   "chamfer, or unknown (chosen per image by cost); with a "
+                                   "rendered set, 'truth' takes each image's from truth.json."),
+    limit: int = typer.Option(None, help="Only the first N images of a set."),
+    offsets: bool = typer.Option(True, "--offsets/--no-offsets", help="Also calibrate, per "
+                                 "shape, the design-edge offset the look still leaves at the "
+                                 "known poses."),
+    json_out: bool = typer.Option(False, "--json", help="Print the file's content as JSON."),
+):
+    """Calibrate dm+b's edge look on a reference holder at known poses (docs/notes/edge_band.md):
+    the look's photometry fitted so that the measured band profiles put the design edge where
+    the known pose does; then the design-edge shift at the known poses, generic vs calibrated."""
+    import json
+    from pathlib import Path
+
+    from .calibration.edge_look import (
+        calibrate_edge_look,
+        calibrate_offsets,
+        load_reference_images,
+        load_reference_set,
+        save_edge_look,
+        shift_at_truth,
+    )
+    from .errors import InputError
+
+    if edge_shape not in ("unknown", "round", "chamfer", "truth"):
+        fail(f"--edge-shape must be round, chamfer, unknown or truth, got {edge_shape!r}")
+    shape = edge_shape if edge_shape in ("round", "chamfer") else None
+    if poses is None:
+        if len(source) != 1 or not (Path(source[0]) / "truth.json").is_file():
+            raise InputError("give one rendered set (a folder with truth.json), or images and "
+                             "--poses")
+        refs = load_reference_set(source[0], limit=limit, use_shape=edge_shape == "truth")
+        if shape is not None:
+            for r in refs:
+                r.shape = shape
+    else:
+        from .geometry.holder import default_holder, load_holder
+        from .robot.poses import read_poses
+
+        if edge_shape == "truth":
+            fail("--edge-shape truth needs a rendered set")
+        ps = read_poses(poses, convention, length_unit, angle_unit, to_frame="cam",
+                        from_frame="holder")
+        refs = load_reference_images(_image_paths(source)[:limit], ps[:limit] if limit else ps,
+                                     _render_camera(camera),
+                                     load_holder(holder) if holder else default_holder(), shape)
+    log(f"{len(refs)} reference images; fitting the look with the design edge at the known "
+        "poses")
+    cal = calibrate_edge_look(refs, progress=log)
+    if offsets:
+        log("the design-edge offset per shape at the known poses")
+        cal = calibrate_offsets(refs, cal)
+    log("checking: the design-edge shift at the known poses, generic and calibrated looks")
+    check = {"generic": shift_at_truth(refs), "calibrated": shift_at_truth(refs,
+                                                                            cal.band_looks())}
+    cal.report["shift_at_truth"] = check
+    save_edge_look(cal, out)
+    if json_out:
+        typer.echo(json.dumps(cal.to_dict(), indent=1))
+        return
+    lk, sd = cal.look, cal.sd()
+    typer.echo(f"calibrated look on {cal.report['images']} images, {cal.report['segments']} "
+               "segments:")
+    for k in ("specular", "shininess", "wall_albedo", "pocket_level"):
+        typer.echo(f"  {k}: {getattr(lk, k):.4g} +- {sd[k]:.2g}")
+    typer.echo(f"  residual cost: {cal.report['cost_ratio_to_start']:.3f} of the nominal look's "
+               "(shift 0)")
+    sd_off = dict(cal.offset_sd_mm)
+    for shape, o in cal.offset_mm:
+        typer.echo(f"  design-edge offset ({shape}): {o:+.4f} +- {sd_off[shape]:.4f} mm")
+    for name, c in check.items():
+        typer.echo(f"  {name} look at the known poses: design-edge shift {c['mean_px']:+.3f} px "
+                   f"({c['mean_mm']:+.4f} mm), sd of image means {c['sd_of_image_means_px']:.3f}"
+                   f" px, segment sd {c['segment_sd_px']:.3f} px; Z error of the pose fitted "
+                   f"from the known pose {c['z_error_mean_mm']:+.3f} +- "
+                   f"{c['z_error_sd_mm'] or 0.0:.3f} mm")
+    typer.echo(f"wrote {out}")
 
 
 def _image_paths(items) -> list:

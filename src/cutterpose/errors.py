@@ -61,5 +61,9 @@ class ClusterError(CutterposeError):
     """A Dask cluster cannot be reached, or its workers cannot run the jobs."""
 
 
+class EdgeLookFileError(ModelFileError):
+    """An edge look file (``cutterpose calibrate-edge-look --out``) is missing or malformed."""
+
+
 class HandEyeFileError(ModelFileError):
     """A hand-eye file (``handeye.json``) is missing or malformed."""

@@ -39,6 +39,7 @@ Convention:
 
 from __future__ import annotations
 
+import inspect
 import json
 import math
 import time
@@ -378,13 +379,18 @@ def _solve(method: str, corners_px: np.ndarray, camera: Camera, holder: Holder,
 
 
 def _refine(method: str, features: Features, camera: Camera, holder: Holder,
-            limits: QualityLimits) -> PoseEstimate:
+            limits: QualityLimits, edge_look=None) -> PoseEstimate:
     """A method that refines its base method's pose with more than the corners
-    (``Method.refine``: ``dm+r`` the edge radius, ``dm+b`` the bands in the image)."""
+    (``Method.refine``: ``dm+r`` the edge radius, ``dm+b`` the bands in the image). A
+    calibrated ``edge_look`` goes to a refinement that takes one (``dm+b``); the others ignore
+    it."""
     m = get_method(method)
     start = _solve(m.base, features.corners_px, camera, holder, limits, features.order,
                    features.H_ideal_holder)
-    return m.refine(start, features, camera, holder, EDGE_SHAPE_FITS[limits.edge_shape])
+    kw = {}
+    if edge_look is not None and "edge_look" in inspect.signature(m.refine).parameters:
+        kw["edge_look"] = edge_look
+    return m.refine(start, features, camera, holder, EDGE_SHAPE_FITS[limits.edge_shape], **kw)
 
 
 def ambiguity_ratio(est: PoseEstimate, corners_ideal_px, camera: Camera, holder: Holder,
@@ -477,14 +483,16 @@ def band_verdict(est: PoseEstimate, limits: QualityLimits) -> Quality:
 
 
 def measure_features(features: Features, camera: Camera, holder: Holder, method: str = "dm+b",
-                     limits: QualityLimits | None = None) -> Measurement:
-    """Pose, std and verdict from already detected features (one image, several methods)."""
+                     limits: QualityLimits | None = None, edge_look=None) -> Measurement:
+    """Pose, std and verdict from already detected features (one image, several methods).
+    ``edge_look``: the edge look calibrated in the cell
+    (:class:`cutterpose.calibration.edge_look.EdgeLookCalibration`; ``dm+b`` only)."""
     limits = limits or QualityLimits()
     timings = dict(features.timings_ms)
     t0 = time.perf_counter()
     try:
         if get_method(method).base is not None:
-            est = _refine(method, features, camera, holder, limits)
+            est = _refine(method, features, camera, holder, limits, edge_look)
         else:
             est = _solve(method, features.corners_px, camera, holder, limits, features.order,
                          features.H_ideal_holder)
@@ -563,7 +571,7 @@ def worst_line_residual(pose: Pose, features: Features, camera: Camera, holder: 
 def measure(image, camera: Camera | None = None, holder: Holder | None = None,
             method: str = "dm+b", params: FeatureParams | None = None,
             limits: QualityLimits | None = None, grasp_point_mm=None, *, handeye=None,
-            T_base_flange=None, robot_accuracy=None) -> Measurement:
+            T_base_flange=None, robot_accuracy=None, edge_look=None) -> Measurement:
     """Measure the holder's pose in one image (and, given ``handeye`` and ``T_base_flange``,
     in the robot's base frame: :func:`cutterpose.robot.locate`, result in ``.robot``).
 
@@ -581,6 +589,9 @@ def measure(image, camera: Camera | None = None, holder: Holder | None = None,
     grasp_point_mm : (3,) holder-frame point whose position the error budget checks (default
         ``limits.grasp_point_mm``, the origin: the centre of the pocket's top plane).
     handeye, T_base_flange, robot_accuracy : see :func:`cutterpose.robot.locate`.
+    edge_look : the edge look calibrated in the cell on a reference holder
+        (:func:`cutterpose.calibration.edge_look.load_edge_look`): ``dm+b`` fits it instead of
+        its generic looks; other methods ignore it.
 
     Returns
     -------
@@ -618,7 +629,7 @@ def measure(image, camera: Camera | None = None, holder: Holder | None = None,
         return _with_robot(Measurement(method, None, np.full(6, np.nan), Quality(False, str(e)),
                                        timings_ms=timings),
                            camera, holder, handeye, T_base_flange, robot_accuracy)
-    m = measure_features(feats, camera, holder, method, limits)
+    m = measure_features(feats, camera, holder, method, limits, edge_look)
     if load_ms:
         m.timings_ms = {"load": load_ms} | m.timings_ms
     m.timings_ms["total"] = (time.perf_counter() - t0) * 1e3

@@ -12,14 +12,15 @@ Outputs in ``out``: ``trials.csv`` (protocol columns, ``sigma_px`` empty), ``sum
 ``summary.json`` (the shared report writers), ``corners.csv`` (per image: difficulty, RMS of the
 detected corners against the true ones with and without the gradient refinement, threshold
 used, segmentation: the paper's ``contour`` or the model-guided fallback ``model``) and
-``failures.csv`` (trial, method, reason) and ``verdicts.csv`` (trial, method, accepted 0/1,
-reason: the measurement's own verdict, whatever the truth says).
+``failures.csv`` (trial, method, reason), ``verdicts.csv`` (trial, method, accepted 0/1,
+reason: the measurement's own verdict, whatever the truth says) and ``budgets.csv`` (trial,
+method, the error budget's 3-sigma position at the grasp point and angle, empty without a pose:
+to check that the budget covers the actual error).
 """
 
 from __future__ import annotations
 
 import csv
-import json
 import math
 import os
 from dataclasses import replace
@@ -27,10 +28,10 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import CutterposeError, InputError
-from ..geometry.camera import camera_from_dict
-from ..geometry.holder import Holder, default_holder, holder_from_dict
+from ..errors import CutterposeError
+from ..geometry.holder import Holder
 from ..image import FeatureParams, detect_features, load_image
+from ..image_set import load_image_set
 from ..parallel import run_jobs
 from ..pipeline import QualityLimits, measure_features
 from .report import summarize, trial_rows, write_summary, write_trials_csv
@@ -38,29 +39,6 @@ from .report import summarize, trial_rows, write_summary, write_trials_csv
 __all__ = ["load_image_set", "run_images", "corner_rms"]
 
 PNP_METHODS = ("dlt", "epnp", "rpnp", "aspnp", "opnp")
-
-
-def load_image_set(folder) -> tuple:
-    """Read ``truth.json`` of an image set: (camera, holder, entries)."""
-    folder = Path(folder)
-    path = folder / "truth.json"
-    if not path.is_file():
-        raise InputError(f"{folder}: no truth.json (an image set is a folder of images and "
-                         "truth.json, see PROTOCOL.md)")
-    try:
-        doc = json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise InputError(f"{path}: not valid JSON ({e})") from None
-    if "camera" not in doc or "images" not in doc:
-        raise InputError(f"{path}: needs fields 'camera' and 'images'")
-    camera = camera_from_dict(doc["camera"], where=f"{path}:camera")
-    holder = holder_from_dict(doc["holder"], where=f"{path}:holder") if "holder" in doc \
-        else default_holder()
-    for i, e in enumerate(doc["images"]):
-        for k in ("file", "R_cam_holder", "t_cam_holder_mm"):
-            if k not in e:
-                raise InputError(f"{path}: image {i} lacks field '{k}'")
-    return camera, holder, doc["images"]
 
 
 def corner_rms(detected_px: np.ndarray, true_px: np.ndarray) -> float:
@@ -77,10 +55,11 @@ def corner_rms(detected_px: np.ndarray, true_px: np.ndarray) -> float:
 
 
 def _one_image(args):
-    i, entry, folder, camera, holder, methods, params, limits = args
+    i, entry, folder, camera, holder, methods, params, limits, edge_look = args
     R = np.asarray(entry["R_cam_holder"], float)
     t = np.asarray(entry["t_cam_holder_mm"], float)
-    out = {"trial": i, "rows": [], "failures": [], "corners": None, "verdicts": []}
+    out = {"trial": i, "rows": [], "failures": [], "corners": None, "verdicts": [],
+           "budgets": []}
     info = {"trial": i, "file": entry["file"], "difficulty": entry.get("difficulty", ""),
             "threshold": "", "segmentation": "", "rms_refined_px": math.nan,
             "rms_threshold_px": math.nan, "reason": ""}
@@ -91,6 +70,7 @@ def _one_image(args):
             out["rows"] += trial_rows(i, math.nan, m, R, t, nan_R, nan_t, math.nan)
             out["failures"].append((i, m, reason))
             out["verdicts"].append((i, m, 0, reason))
+            out["budgets"].append((i, m, "", ""))
         info["reason"] = reason
         out["corners"] = info
 
@@ -110,7 +90,10 @@ def _one_image(args):
         info["rms_threshold_px"] = corner_rms(
             camera.distort_px(intersect_consecutive(feats.lines_threshold_ideal)), true_px)
     for m in methods:
-        meas = measure_features(feats, camera, holder, m, limits)
+        meas = measure_features(feats, camera, holder, m, limits, edge_look)
+        b = meas.quality.budget
+        out["budgets"].append((i, m, "" if b is None else f"{b.position_3sigma_mm:.4f}",
+                               "" if b is None else f"{b.angle_3sigma_deg:.4f}"))
         ms = meas.timings_ms.get("solve", math.nan)
         if meas.pose is not None:
             rows = trial_rows(i, math.nan, m, R, t, meas.pose.R, meas.pose.t_mm, ms)
@@ -131,12 +114,15 @@ def _one_image(args):
 
 def run_images(folder, methods: list[str], out, workers: int = 1, params=None,
                limit: int | None = None, progress=None, scheduler=None,
-               limits=None) -> list[dict]:
+               limits=None, edge_look=None) -> list[dict]:
     """Run every method on every image of a set; write the outputs (module doc) into ``out``.
 
     Images run in this process, in ``workers`` processes or on the Dask cluster at
     ``scheduler`` (:mod:`cutterpose.parallel`; the workers read the images, so the set must be
     at the same path on every worker, e.g. a shared file system); the outputs are the same.
+
+    ``edge_look``: an edge look calibrated in the cell
+    (:func:`cutterpose.calibration.edge_look.load_edge_look`) for ``dm+b``.
 
     Returns the summary statistics (:func:`cutterpose.experiments.report.summarize`).
     """
@@ -152,8 +138,8 @@ def run_images(folder, methods: list[str], out, workers: int = 1, params=None,
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     # the folder as the workers will see it: absolute, as on a shared file system
-    jobs = [(i, e, str(Path(folder).resolve()), camera, holder, list(methods), params, limits)
-            for i, e in enumerate(entries)]
+    jobs = [(i, e, str(Path(folder).resolve()), camera, holder, list(methods), params, limits,
+             edge_look) for i, e in enumerate(entries)]
     count = [0]
 
     def done(i, _):
@@ -176,6 +162,11 @@ def run_images(folder, methods: list[str], out, workers: int = 1, params=None,
         w.writerow(["trial", "method", "accepted", "reason"])
         for res in results:
             w.writerows(res["verdicts"])
+    with open(out / "budgets.csv", "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["trial", "method", "position_3sigma_mm", "angle_3sigma_deg"])
+        for res in results:
+            w.writerows(res["budgets"])
     cols = ["trial", "file", "difficulty", "threshold", "segmentation", "rms_refined_px",
             "rms_threshold_px", "reason"]
     with open(out / "corners.csv", "w", newline="") as fh:

@@ -24,7 +24,10 @@ The fit per segment (a third to a half of one edge, ``n_seg`` per edge):
   material, one light) and chosen by the trimmed sum of the segments' costs (on every other
   segment: the choice needs no more);
 * each segment's shift variance with its radius free, from the Hessian of the cost round its
-  minimum (:func:`_shift_variance`): the pose fit's weights.
+  minimum (:func:`_shift_variance`): the pose fit's weights;
+* a look calibrated in the cell on a reference holder at known poses (:class:`BandLooks`,
+  :mod:`cutterpose.calibration.edge_look`) replaces the generic variants: one photometry for
+  both shapes, and per shape a calibrated design-edge offset added to the fitted shifts.
 
 The result per segment: the design edge's point ``q + shift n`` (ideal px), the radius, the
 residual RMS, the gain (contrast), and the same for the other plausible looks (their spread is
@@ -56,7 +59,8 @@ from ..geometry.camera import Camera
 from ..geometry.holder import Holder
 from . import edge_model as em
 
-__all__ = ["BandProfiles", "BandFit", "sample_band", "fit_band", "band_looks"]
+__all__ = ["BandProfiles", "BandFit", "BandLooks", "sample_band", "fit_band", "band_looks",
+           "profile_costs", "CAL_RADII_MM"]
 
 #: the radii the coarse scan tries (mm) and the fine step
 COARSE_RADII_MM = np.array([0.0, 0.25, 0.5, 0.75, 1.0, 1.25, 1.5, 2.0, 2.5, 3.0, 3.5, 4.0, 4.5,
@@ -81,6 +85,39 @@ PLAUSIBLE = 0.7
 #: likelihood weight relative to the best (``(C_best / C)^(n / 2)``, the budget's) is at least
 MAX_PLAUSIBLE = 3
 MIN_LOOK_WEIGHT = 0.01
+#: the radii over which :func:`profile_costs` profiles each segment's radius out (mm): the fine
+#: scan's steps (0.05 mm below 2 mm, 0.1 mm above) over the coarse scan's range
+CAL_RADII_MM = np.r_[np.arange(0.0, 2.0, FINE_STEP_MM), np.arange(2.0, 6.5 + 1e-9,
+                                                                    2 * FINE_STEP_MM)]
+
+
+@dataclass(frozen=True)
+class BandLooks:
+    """Photometric candidates calibrated in the cell (:mod:`cutterpose.calibration.edge_look`)
+    in place of the generic :func:`band_looks`.
+
+    ``look``: the calibrated photometry (its ``shape`` is replaced by each shape fitted; the
+    shape is still chosen per image by the profiles' cost, the blur among ``blurs_px``);
+    ``variants``: looks round it (the calibration's uncertainty) that are never chosen, only
+    fitted for the error budget's edge-model term, each weighted by its relative likelihood as
+    the generic plausible looks are. ``offset_mm``: per shape, the design-edge offset the look
+    still leaves at the known poses (mm outwards in the face plane), added to every fitted
+    shift of that shape (times the segment's px per mm); ``offset_scatter_mm``: per shape,
+    how far one image's design edge may still be off (1 sigma, mm: the offset's scatter over
+    the reference images), the budget's edge-model term.
+    """
+
+    look: em.EdgeLook
+    variants: tuple[em.EdgeLook, ...] = ()
+    blurs_px: tuple[float, ...] = BLURS_PX
+    offset_mm: tuple[tuple[str, float], ...] = ()
+    offset_scatter_mm: tuple[tuple[str, float], ...] = ()
+
+    def for_shape(self, shape: str) -> em.EdgeLook:
+        return replace(self.look, shape=shape, profile_sigma_px=0.0)
+
+    def offset_px(self, shape: str, px_per_mm: np.ndarray) -> np.ndarray:
+        return dict(self.offset_mm).get(shape, 0.0) * np.asarray(px_per_mm, float)
 
 
 def band_looks(shapes=("round", "chamfer")) -> list[em.EdgeLook]:
@@ -430,7 +467,8 @@ def _fit_looks(bp: BandProfiles, bank: _ModelBank, looks, coarse: LookFit | None
 
 def _look_fit(bp: BandProfiles, look, r, s, c, g, var) -> LookFit:
     c = np.where(bp.valid, c, np.inf)
-    rms = np.sqrt(c / len(bp.w_px))
+    with np.errstate(invalid="ignore"):     # a float32 cancellation may leave c < 0: NaN
+        rms = np.sqrt(c / len(bp.w_px))
     var = np.where(bp.valid, var, np.inf)
     return LookFit(look, r, s, c, g, rms, _trimmed_total(c, bp.valid), var)
 
@@ -473,25 +511,35 @@ def _trimmed_total(cost, valid) -> float:
 
 def fit_band(bp: BandProfiles, camera: Camera, holder: Holder, R_cam_holder, t_cam_holder_mm,
              shapes=("round", "chamfer"), previous: BandFit | None = None,
-             fine_plausible: bool = True) -> BandFit:
+             fine_plausible: bool = True, looks: BandLooks | None = None) -> BandFit:
     """Fit the edge model to every segment's profile (module doc).
 
     ``previous``: a fit at a nearby pose whose looks (chosen and plausible) are fitted again,
     with no look scan. ``fine_plausible=False`` leaves the plausible looks at their coarse
-    fit (a first pass that only needs to know which they are).
+    fit (a first pass that only needs to know which they are). ``looks``: a look calibrated
+    in the cell (:class:`BandLooks`) instead of the generic :func:`band_looks`: the shape is
+    chosen among ``shapes`` with it, the blur among its ``blurs_px``, and its variants are
+    fitted for the budget only (never chosen).
 
     Returns
     -------
     BandFit : ``best`` the chosen look (its blur fitted), ``plausible`` the other looks whose
-        trimmed cost is within :data:`PLAUSIBLE` of the best (fine-fitted too).
+        trimmed cost is within :data:`PLAUSIBLE` of the best (fine-fitted too), and with
+        ``looks`` its variants at the chosen shape and blur.
     """
     if not bp.valid.any():
         raise InputError("fit_band: no segment of any edge was sampled")
-    looks = band_looks(shapes)
+    if looks is None:
+        candidates, blurs = band_looks(shapes), BLURS_PX
+        light = em.EdgeLook()
+    else:
+        candidates, blurs = [looks.for_shape(s) for s in shapes], tuple(looks.blurs_px)
+        light = looks.look                  # a calibrated ring light (edge_views' lights)
     # the model grid: the samples, the shifts scanned (<= COARSE_SHIFT_PX + a fine step) and
     # the blur's reach (<= 7 px) either side
     grid = (float(bp.w_px[0]) - 14.0, float(bp.w_px[-1]) + 14.0)
-    bank = _ModelBank(em.edge_views(R_cam_holder, t_cam_holder_mm, camera.K, holder), grid)
+    bank = _ModelBank(em.edge_views(R_cam_holder, t_cam_holder_mm, camera.K, holder, light),
+                      grid)
     if previous is not None:
         # a second pass at a pose that moved little: the looks chosen before, scanned anew
         # (coarse, then fine) only for the chosen and the plausible ones
@@ -499,19 +547,19 @@ def fit_band(bp: BandProfiles, camera: Camera, holder: Holder, R_cam_holder, t_c
         for lf in [previous.best] + previous.plausible:
             c = _fit_looks(bp, bank, [lf.look], shift_range_px=2.0)[0]
             out.append(_fit_looks(bp, bank, [lf.look], c)[0])
-        return BandFit(out[0], out[1:], bp)
+        return _offset(BandFit(out[0], out[1:], bp), looks)
     # the look is chosen on every other segment (with 40 or more): the coarse scans of all
     # looks are the fit's main cost, and a shared look needs no more
     sub = _subset(bp, np.arange(0, len(bp.edge), 2)) if len(bp.edge) >= 40 else bp
-    coarse = [_fit_looks(sub, bank, [lk])[0] for lk in looks]
+    coarse = [_fit_looks(sub, bank, [lk])[0] for lk in candidates]
     totals = np.array([lf.total for lf in coarse])
     order = np.argsort(totals)
     best_i = int(order[0])
     n_eff = max(1, int(np.ceil(0.75 * int(sub.valid.sum()))))
-    full = _fit_looks(bp, bank, [looks[best_i]])[0] if sub is not bp else coarse[best_i]
+    full = _fit_looks(bp, bank, [candidates[best_i]])[0] if sub is not bp else coarse[best_i]
     # the chosen variant at each blur (one raw profile), then the plausible others at the
     # chosen blur
-    fine = _fit_looks(bp, bank, [replace(looks[best_i], blur_sigma_px=b) for b in BLURS_PX],
+    fine = _fit_looks(bp, bank, [replace(candidates[best_i], blur_sigma_px=b) for b in blurs],
                       full)
     best = min(fine, key=lambda lf: lf.total)
     plausible = []
@@ -521,13 +569,76 @@ def fit_band(bp: BandProfiles, camera: Camera, holder: Holder, R_cam_holder, t_c
         if (ratio < PLAUSIBLE or ratio ** (0.5 * n_eff) < MIN_LOOK_WEIGHT
                 or len(plausible) == MAX_PLAUSIBLE):
             continue
-        lk = replace(looks[i], blur_sigma_px=best.look.blur_sigma_px)
+        lk = replace(candidates[i], blur_sigma_px=best.look.blur_sigma_px)
         if fine_plausible:
             c = _fit_looks(bp, bank, [lk])[0] if sub is not bp else coarse[i]
             plausible.append(_fit_looks(bp, bank, [lk], c)[0])
         else:
             plausible.append(replace(coarse[i], look=lk))
-    return BandFit(best, plausible, bp)
+    if looks is not None:
+        # the calibration's variants at the chosen shape and blur: for the budget only (a first
+        # pass only needs to name them; the last fits them)
+        for v in looks.variants:
+            lk = replace(v, shape=best.look.shape, blur_sigma_px=best.look.blur_sigma_px,
+                         profile_sigma_px=0.0)
+            if fine_plausible:
+                plausible.append(_fit_looks(bp, bank, [lk], _fit_looks(bp, bank, [lk])[0])[0])
+            else:
+                plausible.append(replace(best, look=lk))
+    return _offset(BandFit(best, plausible, bp), looks)
+
+
+def _offset(fit: BandFit, looks: BandLooks | None) -> BandFit:
+    """The calibrated design-edge offsets (:attr:`BandLooks.offset_mm`) added to every look's
+    shifts (none without a calibration)."""
+    if looks is None or not looks.offset_mm:
+        return fit
+    px = fit.profiles.px_per_mm
+
+    def moved(lf: LookFit) -> LookFit:
+        # a first pass's plausible look may stand on the coarse scan of a subset of the
+        # segments (only its look is used): left as it is
+        if len(lf.shift_px) != len(px):
+            return lf
+        return replace(lf, shift_px=lf.shift_px + looks.offset_px(lf.look.shape, px))
+
+    fit.best = moved(fit.best)
+    fit.plausible = [moved(lf) for lf in fit.plausible]
+    return fit
+
+
+def profile_costs(bp: BandProfiles, view: em.EdgeView, looks, radii_mm=CAL_RADII_MM,
+                  shifts_px=(0.0,)):
+    """The fit's cost of every segment under looks that differ only by their blur, over a grid
+    of radii and shifts (the calibration's scan, :mod:`cutterpose.calibration.edge_look`).
+
+    Parameters
+    ----------
+    view : :func:`~cutterpose.image.edge_model.edge_views` at the profiles' pose (lit as the
+        looks are).
+    looks : looks sharing all but ``blur_sigma_px`` (one raw profile for all of them).
+    radii_mm : (M,) radii (mm) given to every segment; shifts_px : (H,) multiples of
+        :data:`STEP_PX`.
+
+    Returns
+    -------
+    cost, gain : (L, S, M, H) residual sum of squares (grey^2; inf for invalid segments) and
+        the profile gain of ``y ~ a + b m(w - shift)``.
+    """
+    looks = list(looks)
+    h = STEP_PX
+    grid = (float(bp.w_px[0]) - 14.0, float(bp.w_px[-1]) + 14.0)
+    bank = _ModelBank(view, grid)
+    Y = np.where(bp.valid[:, None], bp.values, 0.0)
+    w0, bls = bank.profiles(np.asarray(radii_mm, float), looks, h)
+    m0 = int(round(-w0[0] / h))
+    w_idx = np.rint(bp.w_px / h).astype(int)
+    shifts = np.rint(np.asarray(shifts_px, float) / h).astype(int)
+    cost, gain = zip(*(_scan(Y, _along_segments(bl, bp.edge, bp.frac), m0, w_idx, shifts)
+                       for bl in bls))
+    cost = np.stack(cost)
+    cost[:, ~bp.valid] = np.inf
+    return cost, np.stack(gain)
 
 
 def _subset(bp: BandProfiles, idx) -> BandProfiles:

@@ -10,6 +10,8 @@ bundled Table 1 cell (``cutterpose/data/cell_table1.toml``)::
     method = "dm+b"                   # pose method (cutterpose.methods)
     chain = "field"                   # image chain: field (default) or paper (section 2.1)
     handeye = "handeye.json"          # eye-in-hand calibration (PROTOCOL.md "Hand-eye file")
+    edge_look = "look.json"           # dm+b's edge look calibrated in the cell
+                                      # (`cutterpose calibrate-edge-look`); absent: generic
     default_holder = "default"
 
     [holders]                         # holder models by name; "default" = the bundled one
@@ -55,6 +57,7 @@ from typing import Annotated, Literal
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
 from ..budget import Tolerance
+from ..calibration.edge_look import EdgeLookCalibration, load_edge_look
 from ..calibration.handeye import HandEye, load_handeye
 from ..errors import CellFileError, CutterposeError
 from ..geometry.camera import Camera, default_camera
@@ -137,6 +140,7 @@ class _CellFile(_Strict):
     method: str = "dm+b"
     chain: Literal["field", "paper"] = "field"
     handeye: str | None = None
+    edge_look: str | None = None
     default_holder: str = "default"
     holders: dict[str, str] = Field(default_factory=lambda: {"default": "default"})
     tolerances: _Tolerances = _Tolerances()
@@ -176,6 +180,8 @@ class Cell:
     grasp_tolerance: GraspTolerance
     service: ServiceSettings
     token: str = field(default="", repr=False)
+    #: dm+b's edge look calibrated in the cell (None: the generic looks)
+    edge_look: EdgeLookCalibration | None = None
 
     def holder(self, name: str | None) -> Holder:
         return self.holders[name or self.default_holder]
@@ -194,7 +200,8 @@ class Cell:
         return {"name": self.name, "camera": self.camera_source, "image_size_px": [w, h],
                 "holders": sorted(self.holders), "default_holder": self.default_holder,
                 "method": self.method, "chain": self.chain,
-                "handeye": self.handeye is not None}
+                "handeye": self.handeye is not None,
+                "edge_look": self.edge_look is not None}
 
 
 def bundled_cell_path() -> Path:
@@ -292,6 +299,10 @@ def load_cell(path: str | Path | None = None, env: dict | None = None,
     except CutterposeError as e:
         raise field_error("handeye", e) from None
     try:
+        edge_look = load_edge_look(_resolve(base, cf.edge_look)) if cf.edge_look else None
+    except CutterposeError as e:
+        raise field_error("edge_look", e) from None
+    try:
         accuracy = RobotAccuracy(cf.robot.accuracy_mm, cf.robot.accuracy_deg)
         tolerance = GraspTolerance(cf.robot.grasp_tolerance_mm,
                                    angle_deg=cf.robot.grasp_tolerance_deg)
@@ -319,4 +330,4 @@ def load_cell(path: str | Path | None = None, env: dict | None = None,
                 holders=holders, default_holder=cf.default_holder, method=cf.method,
                 chain=cf.chain, limits=limits, handeye=handeye, handeye_path=handeye_path,
                 robot_accuracy=accuracy, grasp_tolerance=tolerance, service=service,
-                token=token)
+                token=token, edge_look=edge_look)

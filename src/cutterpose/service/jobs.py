@@ -127,7 +127,8 @@ def init_worker(cell: Cell) -> Cell:
     w, h = cell.camera.image_size_px
     try:
         measure(np.zeros((h, w), np.uint8), cell.camera, cell.holder(None), cell.method,
-                params=cell.feature_params(), limits=cell.limits)
+                params=cell.feature_params(), limits=cell.limits,
+                edge_look=cell.edge_look)
     except ImageError:
         pass  # a black image is refused: expected, the point was the imports
     return cell
@@ -155,7 +156,7 @@ def measure_job(cell: Cell, data: bytes, fmt: str, size_px, holder: str | None,
     t1 = time.perf_counter()
     hol = cell.holder(holder)
     m = measure(img, cell.camera, hol, cell.method, params=cell.feature_params(),
-                limits=cell.limits)
+                limits=cell.limits, edge_look=cell.edge_look)
     t2 = time.perf_counter()
     return {"measurement": m.to_dict(), "robot": robot_frame(m, cell, hol, flange_row),
             "image": {"width_px": int(img.shape[1]), "height_px": int(img.shape[0])},
@@ -176,7 +177,7 @@ def overlay_job(cell: Cell, path: str, fmt: str, size_px, holder: str | None,
     img = decode_image(data, fmt, size_px, tuple(cell.camera.image_size_px))
     hol = cell.holder(holder)
     m = measure(img, cell.camera, hol, cell.method, params=cell.feature_params(),
-                limits=cell.limits)
+                limits=cell.limits, edge_look=cell.edge_look)
     ok, buf = cv2.imencode(".png", draw_overlay(img, m, cell.camera, hol, width_px))
     if not ok:  # pragma: no cover - PNG encoding of a valid BGR image
         raise ImageError("could not encode the overlay")

@@ -19,7 +19,9 @@ The error budget (:mod:`cutterpose.budget`) gets three parts:
 * ``noise``: ``s^2 (J^T W J)^-1`` with ``s^2`` the weighted residual variance (it contains the
   per-segment variation of the break, which the model does not know);
 * ``edge model``: the poses of the other plausible looks (shape and photometry the profile fit
-  cannot rule out), mean of their outer products about the chosen pose;
+  cannot rule out), mean of their outer products about the chosen pose; with a look calibrated
+  in the cell (:mod:`cutterpose.calibration.edge_look`) also the pose change for a uniform
+  shift by the design-edge offsets' scatter measured over its reference images;
 * ``model floor``: the pose change for a uniform outward shift of every design point by
   :data:`SHIFT_FLOOR_MM` (the profile model's systematic error that no alternative look
   shows: a uniform shift is what the pose cannot tell from depth).
@@ -46,7 +48,7 @@ from ..errors import CutterposeError, InputError
 from ..geometry.camera import Camera
 from ..geometry.holder import Holder
 from ..geometry.pose import Pose, rotation_from_euler_deg
-from ..image.edge_band import BandFit, fit_band, sample_band
+from ..image.edge_band import BandFit, BandLooks, fit_band, sample_band
 from .estimate import PoseEstimate
 
 __all__ = ["BandPose", "fit_pose_design_points", "measure_band", "refine_features", "solve",
@@ -82,6 +84,7 @@ class BandPose:
     weights: np.ndarray           # (S,) robust weights (0: not used)
     chi: float                    # root of the weighted chi-square per degree of freedom
     passes: int
+    calibrated: bool = False      # the look was calibrated in the cell (BandLooks)
 
     @property
     def radius_mm(self) -> float:
@@ -97,7 +100,11 @@ class BandPose:
                                           for r, ok in zip(b.radius_mm, v)],
                 "segments_used": int(np.count_nonzero(self.weights > 0.5)),
                 "segments_valid": int(v.sum()), "residual_chi": round(self.chi, 3),
-                "plausible_looks": len(self.fit.plausible), "passes": self.passes}
+                "plausible_looks": len(self.fit.plausible), "passes": self.passes,
+                "look": {"calibrated": self.calibrated, "specular": b.look.specular,
+                         "shininess": b.look.shininess, "face_albedo": b.look.face_albedo,
+                         "wall_albedo": b.look.wall_albedo,
+                         "pocket_level": b.look.pocket_level}}
 
 
 def _residuals(dof, X, p, n, K):
@@ -148,7 +155,7 @@ def _sd(lf) -> np.ndarray:
 
 
 def _pose_of(fit: BandFit, lf, X, n_img, K, dof0, valid):
-    v = valid & np.isfinite(lf.shift_var_px2)
+    v = valid & np.isfinite(lf.shift_var_px2) & (lf.shift_var_px2 >= 0)
     if v.sum() < 6:
         return np.full(6, np.inf)
     p = fit.design_points_px(lf)[v]
@@ -170,10 +177,11 @@ def _look_spread(fit: BandFit, X, n_img, K, dof, valid) -> np.ndarray:
 
 
 def measure_band(image, camera: Camera, holder: Holder, start: PoseEstimate,
-                 edges_seen=None, shapes=("round", "chamfer"), max_passes: int | None = None
-                 ) -> PoseEstimate:
+                 edges_seen=None, shapes=("round", "chamfer"), max_passes: int | None = None,
+                 looks: BandLooks | None = None) -> PoseEstimate:
     """``dm+b`` from a start pose (module doc). A falsy estimate with the reason when the band
-    cannot be measured."""
+    cannot be measured. ``looks``: the edge look calibrated in the cell
+    (:mod:`cutterpose.calibration.edge_look`) instead of the generic looks."""
     t0 = time.perf_counter()
     max_passes = PASSES if max_passes is None else max_passes
     if not start:
@@ -198,8 +206,11 @@ def measure_band(image, camera: Camera, holder: Holder, start: PoseEstimate,
                     f"{len(valid)} edge segments (< {100 * MIN_SEGMENT_FRACTION:.0f} %): "
                     "edges hidden")
             fit = fit_band(bp, camera, holder, R, dof[3:], shapes,
-                           previous=fit if passes > 1 else None, fine_plausible=last)
-            valid &= np.isfinite(fit.best.cost) & np.isfinite(fit.best.shift_var_px2)
+                           previous=fit if passes > 1 else None, fine_plausible=last,
+                           looks=looks)
+            # (a variance below 0: a float32 cancellation in a near-perfect fit's cost)
+            valid &= (np.isfinite(fit.best.cost) & np.isfinite(fit.best.shift_var_px2)
+                      & (fit.best.shift_var_px2 >= 0))
             if valid.sum() < MIN_SEGMENT_FRACTION * len(valid):
                 return PoseEstimate.failure(
                     "dm+b", f"the band's profile fixes the design edge on {int(valid.sum())} "
@@ -218,16 +229,28 @@ def measure_band(image, camera: Camera, holder: Holder, start: PoseEstimate,
         cov_noise = np.full((6, 6), np.inf)
     X, n_img = bp.points_holder_mm, bp.normals_ideal
     cov_model = _look_spread(fit, X, n_img, K, dof, valid)
+
+    def uniform(shift_mm: float) -> np.ndarray:
+        """The pose change for a uniform outward shift of every design point (mm)."""
+        p_shift = (fit.design_points_px()[valid]
+                   + (shift_mm * bp.px_per_mm[valid])[:, None] * n_img[valid])
+        return fit_pose_design_points(p_shift, n_img[valid], X[valid], K, dof, sd)[0] - dof
+
+    if looks is not None:
+        # a calibrated look: the scatter of the design-edge offset over the reference images
+        # (measured at their known poses) is this image's remaining look error
+        sc = dict(looks.offset_scatter_mm).get(fit.best.look.shape)
+        if sc:
+            d_s = uniform(sc)
+            cov_model = cov_model + np.outer(d_s, d_s)
     # a uniform outward shift of the design edge by the model floor
-    floor_px = SHIFT_FLOOR_MM * bp.px_per_mm[valid]
-    p_shift = fit.design_points_px()[valid] + floor_px[:, None] * n_img[valid]
-    d_u = fit_pose_design_points(p_shift, n_img[valid], X[valid], K, dof, sd)[0] - dof
+    d_u = uniform(SHIFT_FLOOR_MM)
     parts = {"noise": cov_noise, "edge model": cov_model, "model floor": np.outer(d_u, d_u)}
     res = np.full(len(valid), np.nan)
     res[valid] = r
     wt = np.zeros(len(valid))
     wt[valid] = w
-    band = BandPose(dof, parts, fit, res, wt, s, passes)
+    band = BandPose(dof, parts, fit, res, wt, s, passes, calibrated=looks is not None)
     R = rotation_from_euler_deg(*dof[:3])
     inl = w > 0.5
     rms = float(np.sqrt(np.mean(r[inl] ** 2))) if inl.any() else math.nan
@@ -237,13 +260,16 @@ def measure_band(image, camera: Camera, holder: Holder, start: PoseEstimate,
 
 
 def refine_features(start: PoseEstimate, features, camera: Camera, model: Holder,
-                    shapes=("round", "chamfer")) -> PoseEstimate:
+                    shapes=("round", "chamfer"), edge_look=None) -> PoseEstimate:
     """``dm+b`` in the pipeline (:class:`~cutterpose.methods.Method` ``refine``): the bands of
-    the edges the image processing saw, in the image it saw them in, from ``start``."""
+    the edges the image processing saw, in the image it saw them in, from ``start``.
+    ``edge_look``: a calibrated look (:class:`~cutterpose.image.edge_band.BandLooks`, or
+    anything with a ``band_looks()`` giving one: the calibration file's object)."""
     if features.image is None:
         return PoseEstimate.failure("dm+b", "the features carry no image to measure the band in")
     seen = features.lines_visible if features.order == "holder" else None
-    est = measure_band(features.image, camera, model, start, seen, shapes)
+    looks = edge_look.band_looks() if hasattr(edge_look, "band_looks") else edge_look
+    est = measure_band(features.image, camera, model, start, seen, shapes, looks=looks)
     if est:
         est.info["start"] = start
     return est

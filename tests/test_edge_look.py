@@ -1,0 +1,258 @@
+"""The edge look calibrated in the cell (``cutterpose calibrate-edge-look``, ``--edge-look``):
+the band model's photometry fitted on a reference holder at known poses so that ``dm+b`` puts
+the design edge where the known pose does."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import replace
+
+import cv2
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from cutterpose.calibration.edge_look import (
+    EdgeLookCalibration,
+    ReferenceImage,
+    calibrate_edge_look,
+    calibrate_offsets,
+    load_edge_look,
+    save_edge_look,
+    shift_at_truth,
+)
+from cutterpose.calibration.edge_look import edge_look_from_dict as load_edge_look_dict
+from cutterpose.cli import app
+from cutterpose.errors import EdgeLookFileError
+from cutterpose.geometry.camera import default_camera
+from cutterpose.geometry.holder import default_holder
+from cutterpose.geometry.pose import Pose
+from cutterpose.image import edge_model as em
+from cutterpose.image.edge_band import STEP_PX, sample_band
+from cutterpose.pipeline import QualityLimits, measure
+from cutterpose.render.analytic import preset, render_holder
+
+CAM = default_camera("table1")
+HOLDER = default_holder()
+#: a look unlike the nominal one (a broader, stronger lobe, darker walls)
+TRUE_LOOK = em.EdgeLook(specular=0.7, shininess=12.0, wall_albedo=0.15, pocket_level=0.08)
+runner = CliRunner()
+
+
+def model_reference(pose: Pose, look: em.EdgeLook, seed: int, blur_px: float = 0.9,
+                    shift_mm: float = 0.0, n_seg: int = 2) -> ReferenceImage:
+    """A reference image whose band profiles are the edge model's own for ``look`` at the true
+    pose (its design edge ``shift_mm`` outwards), one radius per edge (0.5-1.6 mm), a grey
+    offset and gain per segment and 1 grey level of noise: the sampling geometry of
+    ``sample_band``, the values of the model."""
+    rng = np.random.default_rng(seed)
+    blank = np.zeros(CAM.image_size_px[::-1], np.uint8)
+    bp = sample_band(blank, CAM, HOLDER, pose.R, pose.t_mm, n_seg=n_seg, positions=12)
+    n = len(HOLDER.corners_mm)
+    r_edge = rng.uniform(0.5, 1.6, n)
+    per_end = np.stack([np.roll(r_edge, 1), r_edge], axis=1)[..., None]     # (N, 2, 1)
+    view = em.edge_views(pose.R, pose.t_mm, CAM.K, HOLDER, look)
+    grid = (float(bp.w_px[0]) - 14.0, float(bp.w_px[-1]) + 14.0)
+    w0, (bl,) = em.blurred_profiles(per_end, view, em.cross_section(view, look),
+                                    [(blur_px, 0.0)], grid, STEP_PX)
+    f = bp.frac[:, None]
+    m = (1 - f) * bl[bp.edge, 1, 0] + f * bl[(bp.edge + 1) % n, 0, 0]    # (S, G0)
+    S = len(bp.edge)
+    shift_px = shift_mm * bp.px_per_mm
+    mw = np.array([np.interp(bp.w_px - s, w0, row) for s, row in zip(shift_px, m)])
+    y = (rng.uniform(20, 40, (S, 1)) + rng.uniform(120, 200, (S, 1)) * mw
+         + rng.normal(0, 1.0, mw.shape))
+    bp.values = y
+    return ReferenceImage(f"model{seed}", bp, CAM, HOLDER, pose.R, pose.t_mm, "round")
+
+
+@pytest.fixture(scope="module")
+def model_refs():
+    return [model_reference(Pose.from_euler(3, -4, 2, 10, -8, 605), TRUE_LOOK, 1),
+            model_reference(Pose.from_euler(-5, 2, -3, -12, 6, 620), TRUE_LOOK, 2)]
+
+
+def test_calibration_recovers_a_known_look(model_refs):
+    """From profiles the edge model made with a known look, the fit with the shift held at 0
+    recovers that look's lobe, and the design edge then comes out where the pose puts it."""
+    cal = calibrate_edge_look(model_refs, rounds=1)
+    assert abs(cal.look.specular / TRUE_LOOK.specular - 1) < 0.1, cal.look
+    assert abs(cal.look.shininess / TRUE_LOOK.shininess - 1) < 0.15, cal.look
+    # the nominal look leaves most of the cost; the recovered one only the noise
+    assert cal.report["cost_ratio_to_start"] < 0.2
+    sd = cal.sd()
+    assert all(np.isfinite(v) and v >= 0 for v in sd.values())
+    calibrated = shift_at_truth(model_refs, cal.band_looks(), shapes=("round",))
+    generic = shift_at_truth(model_refs, shapes=("round",))
+    assert abs(calibrated["mean_px"]) < 0.05
+    assert abs(calibrated["mean_px"]) < abs(generic["mean_px"])
+
+
+def test_offset_calibration_recovers_a_known_offset():
+    """Profiles of the right look whose design edge lies 0.03 mm outside the true one: dm+b's fit
+    puts it there (to its scan's grid: 0.2 px steps and a parabola, ~0.01 mm), the offset
+    calibration finds the opposite offset for the fillets (none for a shape it never saw), and
+    with it the design edge comes out at the known pose again."""
+    poses = [Pose.from_euler(3, -4, 2, 10, -8, 605), Pose.from_euler(-5, 2, -3, -12, 6, 620),
+             Pose.from_euler(1, 5, 4, 4, 10, 596)]
+    refs = [model_reference(p, TRUE_LOOK, 10 + i, shift_mm=0.03, n_seg=4)
+            for i, p in enumerate(poses)]
+    cal = _calibration(specular=TRUE_LOOK.specular, shininess=TRUE_LOOK.shininess,
+                       wall_albedo=TRUE_LOOK.wall_albedo, pocket_level=TRUE_LOOK.pocket_level)
+    before = shift_at_truth(refs, cal.band_looks(), shapes=("round",))
+    cal = calibrate_offsets(refs, cal, shapes=("round",))
+    off = dict(cal.offset_mm)
+    assert set(off) == {"round"}
+    assert abs(before["mean_mm"] - 0.03) < 0.012
+    assert abs(off["round"] + before["mean_mm"]) < 0.004, off
+    after = shift_at_truth(refs, cal.band_looks(), shapes=("round",))
+    assert abs(after["mean_mm"]) < 0.004
+    back = load_edge_look_dict(cal.to_dict())
+    assert back.offset_mm == cal.offset_mm
+
+
+def _calibration(**look) -> EdgeLookCalibration:
+    lk = replace(em.EdgeLook(profile_sigma_px=0.0), **look)
+    x = (float(np.log(lk.specular)), float(np.log(lk.shininess)), lk.wall_albedo,
+         lk.pocket_level)
+    cov = tuple(tuple(1e-4 * (i == j) for j in range(4)) for i in range(4))
+    return EdgeLookCalibration(lk, x, cov, cov)
+
+
+@pytest.fixture(scope="module")
+def new_holder(tmp_path_factory):
+    """A new holder with fillets of 0.5-1.5 mm (the analytic ``new``) and a look file."""
+    d = tmp_path_factory.mktemp("look")
+    pose = Pose.from_euler(-2, 3, -3, -12, 5, 614)
+    img = render_holder(pose, CAM, HOLDER, preset("new"), seed=5, noise_seed=6).image
+    cv2.imwrite(str(d / "img.png"), img)
+    cal = replace(_calibration(specular=1.3, shininess=33.0, wall_albedo=0.2,
+                               pocket_level=0.1),
+                  offset_mm=(("chamfer", 0.02), ("round", -0.01)),
+                  offset_scatter_mm=(("chamfer", 0.03), ("round", 0.03)))
+    save_edge_look(cal, d / "look.json")
+    return pose, img, cal, d
+
+
+def test_edge_look_changes_the_fitted_look(new_holder):
+    """``measure(edge_look=...)``: dm+b fits the calibrated look instead of the generic ones
+    (without it, a generic look as before), and the budget's edge-model term carries the
+    calibration's offset scatter; given the variants too, they are fitted for the budget."""
+    from cutterpose.image import FeatureParams, detect_features
+    from cutterpose.solvers.edge_band import refine_features
+
+    pose, img, cal, _ = new_holder
+    limits = QualityLimits(edge_shape="unknown")
+    plain = measure(img, CAM, HOLDER, method="dm+b", limits=limits)
+    calib = measure(img, CAM, HOLDER, method="dm+b", limits=limits, edge_look=cal)
+    b0, b1 = plain.estimate.info["band"], calib.estimate.info["band"]
+    generic = {(v.specular, v.shininess) for v in em.LOOK_VARIANTS}
+    assert (b0.fit.best.look.specular, b0.fit.best.look.shininess) in generic
+    assert not b0.calibrated
+    assert b1.calibrated
+    assert (b1.fit.best.look.specular, b1.fit.best.look.shininess) == (1.3, 33.0)
+    parts = calib.quality.budget.to_dict()["parts"]
+    assert parts["edge model"]["position_3sigma_mm"] > 0.01
+    # the variants round the look (band_looks(variant_axes=...)) enter the edge-model term
+    feats = detect_features(img, CAM, HOLDER, FeatureParams.for_camera(CAM))
+    start = plain.estimate.info["start"]
+    est = refine_features(start, feats, CAM, HOLDER, edge_look=cal.band_looks(variant_axes=2))
+    b2 = est.info["band"]
+    varied = [lf.look for lf in b2.fit.plausible if lf.look.shape == b2.fit.best.look.shape]
+    assert len(varied) >= 2
+
+    def photometry(v):
+        return v.specular, v.shininess, v.wall_albedo, v.pocket_level
+
+    assert all(photometry(v) != photometry(b2.fit.best.look) for v in varied)
+
+
+def test_cli_edge_look_option(new_holder):
+    """``cutterpose measure --edge-look``: the JSON says which look was fitted."""
+    _, _, _, d = new_holder
+    res = runner.invoke(app, ["measure", str(d / "img.png"), "--json", "--edge-look",
+                              str(d / "look.json")])
+    assert res.exit_code in (0, 3), res.output
+    look = json.loads(res.stdout)["edge_band"]["look"]
+    assert look["calibrated"] is True and look["specular"] == 1.3
+
+
+def _good_dict():
+    return _calibration(specular=0.9, shininess=30.0).to_dict()
+
+
+@pytest.mark.parametrize("change,words", [
+    (lambda d: d.update(format="camera"), "not an edge look file"),
+    (lambda d: d.update(version=7), "version"),
+    (lambda d: d["look"].update(specular="bright"), "specular"),
+    (lambda d: d["look"].update(shininess=float("nan")), "shininess"),
+    (lambda d: d["look"].update(wall_albedo=-0.2), "wall_albedo"),
+    (lambda d: d.pop("look"), "look"),
+    (lambda d: d.update(cov_mean=[[1.0, 2.0], [2.0, 1.0]]), "cov_mean"),
+    (lambda d: d.update(cov_image=[[-1.0 if i == j else 0.0 for j in range(4)]
+                                   for i in range(4)]), "cov_image"),
+    (lambda d: d.update(blurs_px=[]), "blurs_px"),
+    (lambda d: d.update(x=[0.0, 1.0]), "'x'"),
+    (lambda d: d.update(design_edge_offset_mm={"square": 0.01}), "design_edge_offset_mm"),
+    (lambda d: d.update(design_edge_offset_mm={"round": 3.0}), "design_edge_offset_mm"),
+])
+def test_malformed_look_file_is_a_typed_error(tmp_path, change, words):
+    d = _good_dict()
+    change(d)
+    p = tmp_path / "look.json"
+    p.write_text(json.dumps(d))
+    with pytest.raises(EdgeLookFileError, match=words):
+        load_edge_look(p)
+
+
+def test_look_file_round_trip_and_unreadable_files(tmp_path):
+    cal = _calibration(specular=0.9, shininess=30.0, wall_albedo=0.1)
+    save_edge_look(cal, tmp_path / "ok.json")
+    back = load_edge_look(tmp_path / "ok.json")
+    assert back.look == cal.look and back.x == cal.x and back.cov_image == cal.cov_image
+    (tmp_path / "bad.json").write_text("{not json")
+    with pytest.raises(EdgeLookFileError, match="not valid JSON"):
+        load_edge_look(tmp_path / "bad.json")
+    with pytest.raises(EdgeLookFileError, match="not found"):
+        load_edge_look(tmp_path / "missing.json")
+
+
+def test_cli_malformed_look_file_one_line(new_holder, tmp_path):
+    _, _, _, d = new_holder
+    p = tmp_path / "look.json"
+    p.write_text(json.dumps({"format": "cutterpose-edge-look", "version": 1}))
+    res = runner.invoke(app, ["measure", str(d / "img.png"), "--edge-look", str(p)])
+    assert res.exit_code == 2
+    assert "look" in res.output and "Traceback" not in res.output
+
+
+def test_cell_file_edge_look(tmp_path):
+    """``edge_look = "look.json"`` in the service's cell file: loaded at start and given to
+    every measurement; a malformed one stops the start with the field named."""
+    from cutterpose.errors import CellFileError
+    from cutterpose.service.config import load_cell
+
+    env = {"CUTTERPOSE_TOKEN": "s3cret-token"}
+    save_edge_look(_calibration(specular=0.9, shininess=30.0), tmp_path / "look.json")
+    (tmp_path / "cell.toml").write_text('edge_look = "look.json"\n')
+    cell = load_cell(tmp_path / "cell.toml", env=env)
+    assert cell.edge_look is not None and cell.edge_look.look.specular == 0.9
+    assert cell.describe()["edge_look"] is True
+    assert load_cell(None, env=env).edge_look is None
+    (tmp_path / "bad.json").write_text('{"format": "cutterpose-edge-look", "version": 1}')
+    (tmp_path / "bad.toml").write_text('edge_look = "bad.json"\n')
+    with pytest.raises(CellFileError, match="edge_look"):
+        load_cell(tmp_path / "bad.toml", env=env)
+
+
+def test_cli_calibrate_needs_known_poses(tmp_path):
+    """``calibrate-edge-look`` without a set's truth.json or a pose file says what it needs."""
+    res = runner.invoke(app, ["calibrate-edge-look", str(tmp_path), "--out",
+                              str(tmp_path / "look.json")])
+    assert res.exit_code == 2 and "truth.json" in res.output and "--poses" in res.output
+    cv2.imwrite(str(tmp_path / "a.png"), np.zeros((8, 8), np.uint8))
+    (tmp_path / "poses.csv").write_text("x_mm,y_mm,z_mm,qx,qy,qz,qw\n0,0,600,0,0,0,1\n"
+                                        "0,0,610,0,0,0,1\n")
+    res = runner.invoke(app, ["calibrate-edge-look", str(tmp_path / "a.png"), "--poses",
+                              str(tmp_path / "poses.csv"), "--out", str(tmp_path / "l.json")])
+    assert res.exit_code == 2 and "1 images but 2 poses" in res.output
