@@ -256,3 +256,19 @@ def test_cli_calibrate_needs_known_poses(tmp_path):
     res = runner.invoke(app, ["calibrate-edge-look", str(tmp_path / "a.png"), "--poses",
                               str(tmp_path / "poses.csv"), "--out", str(tmp_path / "l.json")])
     assert res.exit_code == 2 and "1 images but 2 poses" in res.output
+
+
+def test_tracker_fits_the_calibrated_look(new_holder):
+    """``Tracker(edge_look=...)`` (and ``cutterpose track --edge-look``): the full measurement
+    of the first frame fits the calibrated look, as ``measure`` does."""
+    from cutterpose.tracking import Tracker
+
+    pose, img, cal, _ = new_holder
+    limits = QualityLimits(edge_shape="unknown")
+    plain = Tracker(CAM, HOLDER, "dm+b", limits=limits).update(img)
+    calib = Tracker(CAM, HOLDER, "dm+b", limits=limits, edge_look=cal).update(img)
+    assert plain.mode == calib.mode == "full"
+    b0 = plain.measurement.estimate.info["band"]
+    b1 = calib.measurement.estimate.info["band"]
+    assert not b0.calibrated and b1.calibrated
+    assert (b1.fit.best.look.specular, b1.fit.best.look.shininess) == (1.3, 33.0)

@@ -539,13 +539,15 @@ def track_cmd(
     camera: str = typer.Option(None, help="table1 (default), synthetic, or a camera file."),
     holder: str = typer.Option(None, help="Holder JSON file (default: the bundled holder)."),
     method: str = typer.Option("dm+", help="Pose method of the full measurement (first frame "
-                               "and fall-backs; dm+b: ~0.5 s, and the tracked frames fit the "
+                               "and fall-backs; dm+b: ~0.2 s, and the tracked frames fit the "
                                "design edge of a broken edge, its offsets measured again by "
                                "a band fit as the view changes: 'anchor' per frame)."),
     raw: str = typer.Option(None, "--raw", help="Frames are raw Mono8 files of WIDTHxHEIGHT."),
     filter_: bool = typer.Option(False, "--filter", help="Also report a constant-velocity "
                                  "filtered pose (beside the raw one)."),
     json_lines: bool = typer.Option(False, "--json-lines", help="One JSON object per frame."),
+    edge_look: str = typer.Option(None, "--edge-look", help="Edge look file from "
+                                  "`calibrate-edge-look` (dm+b fits the calibrated look)."),
 ):
     """Track the holder through a sequence: edges predicted from the previous pose, the full
     measurement on the first frame and whenever tracking fails (said per frame)."""
@@ -558,7 +560,13 @@ def track_cmd(
     from .tracking import Tracker
 
     cam = _render_camera(camera)
-    tracker = Tracker(cam, load_holder(holder) if holder else None, method, filter=filter_)
+    look = None
+    if edge_look:
+        from .calibration.edge_look import load_edge_look
+
+        look = load_edge_look(edge_look)
+    tracker = Tracker(cam, load_holder(holder) if holder else None, method, filter=filter_,
+                      edge_look=look)
     size = parse_raw_size(raw) if raw else None
     modes, times, anchors = {}, [], 0
     for name, frame in _frames(source, size):

@@ -123,7 +123,7 @@ from .pipeline import (
     band_verdict,
     measure,
 )
-from .solvers.edge_band import measure_band
+from .solvers.edge_band import as_band_looks, measure_band
 from .solvers.estimate import PoseEstimate
 
 __all__ = ["TrackParams", "TrackResult", "Tracker", "PoseFilter", "approach_limits",
@@ -408,6 +408,9 @@ class Tracker:
         approach from 940 to 580 mm, :func:`approach_params` and :func:`approach_limits`).
     track : :class:`TrackParams`.
     filter : also report the temporal filter's pose.
+    edge_look : the edge look calibrated in the cell
+        (:func:`cutterpose.calibration.edge_look.load_edge_look`): ``dm+b``'s full measurements
+        and re-anchors fit it instead of the generic looks.
 
     Examples
     --------
@@ -420,8 +423,9 @@ class Tracker:
     def __init__(self, camera: Camera | None = None, holder: Holder | None = None,
                  method: str = "dm+", params: FeatureParams | None = None,
                  limits: QualityLimits | None = None, track: TrackParams | None = None,
-                 filter: bool = False):
+                 filter: bool = False, edge_look=None):
         self.camera = camera or default_camera("table1")
+        self.edge_look = edge_look
         self.holder = holder or default_holder()
         self.method = method
         self.params = params or approach_params(self.camera)
@@ -492,7 +496,8 @@ class Tracker:
                 return res
         # full measurement
         t1 = time.perf_counter()
-        m = measure(img, self.camera, self.holder, self.method, self.params, self.limits)
+        m = measure(img, self.camera, self.holder, self.method, self.params, self.limits,
+                    edge_look=self.edge_look)
         timings["full"] = (time.perf_counter() - t1) * 1e3
         self._prev = None   # the velocity is unknown after a fall-back
         if m.ok:
@@ -602,7 +607,8 @@ class Tracker:
         self._attempts += 1
         start = PoseEstimate("track", res.pose.R, res.pose.t_mm.copy())
         est = measure_band(img, self.camera, self.holder, start, res.edges_used,
-                           EDGE_SHAPE_FITS[self.limits.edge_shape], tp.anchor_passes)
+                           EDGE_SHAPE_FITS[self.limits.edge_shape], tp.anchor_passes,
+                           looks=as_band_looks(self.edge_look))
         q = band_verdict(est, self.limits)
         timings["anchor"] = (time.perf_counter() - t) * 1e3
         if not q.ok:

@@ -51,8 +51,8 @@ from ..geometry.pose import Pose, rotation_from_euler_deg
 from ..image.edge_band import BandFit, BandLooks, fit_band, sample_band
 from .estimate import PoseEstimate
 
-__all__ = ["BandPose", "fit_pose_design_points", "measure_band", "refine_features", "solve",
-           "SHIFT_FLOOR_MM"]
+__all__ = ["BandPose", "as_band_looks", "fit_pose_design_points", "measure_band",
+           "refine_features", "solve", "SHIFT_FLOOR_MM"]
 
 #: the band model's systematic uncertainty as a uniform outward shift of the design edge (mm
 #: in the face plane, 1 sigma): on the development pbr sets at ~4 px/mm the design edge of
@@ -259,6 +259,13 @@ def measure_band(image, camera: Camera, holder: Holder, start: PoseEstimate,
     return est
 
 
+def as_band_looks(edge_look) -> BandLooks | None:
+    """What ``dm+b`` fits from what a caller holds: ``None`` (the generic looks), a
+    :class:`~cutterpose.image.edge_band.BandLooks`, or a cell calibration (anything with a
+    ``band_looks()``, e.g. :class:`cutterpose.calibration.edge_look.EdgeLookCalibration`)."""
+    return edge_look.band_looks() if hasattr(edge_look, "band_looks") else edge_look
+
+
 def refine_features(start: PoseEstimate, features, camera: Camera, model: Holder,
                     shapes=("round", "chamfer"), edge_look=None) -> PoseEstimate:
     """``dm+b`` in the pipeline (:class:`~cutterpose.methods.Method` ``refine``): the bands of
@@ -268,8 +275,8 @@ def refine_features(start: PoseEstimate, features, camera: Camera, model: Holder
     if features.image is None:
         return PoseEstimate.failure("dm+b", "the features carry no image to measure the band in")
     seen = features.lines_visible if features.order == "holder" else None
-    looks = edge_look.band_looks() if hasattr(edge_look, "band_looks") else edge_look
-    est = measure_band(features.image, camera, model, start, seen, shapes, looks=looks)
+    est = measure_band(features.image, camera, model, start, seen, shapes,
+                       looks=as_band_looks(edge_look))
     if est:
         est.info["start"] = start
     return est
