@@ -47,11 +47,11 @@ cv2.setNumThreads(1)
 
 
 def run(seq: Path, with_full: bool = True, track: TrackParams | None = None,
-        method: str = "dm+") -> list[dict]:
+        method: str = "dm+", edge_look=None) -> list[dict]:
     truth = json.loads((seq / "truth.json").read_text())
     camera = camera_from_dict(truth["camera"])
     holder = holder_from_dict(truth["holder"])
-    tracker = Tracker(camera, holder, method, filter=True, track=track)
+    tracker = Tracker(camera, holder, method, filter=True, track=track, edge_look=edge_look)
     params, limits = approach_params(camera), approach_limits()
     rows = []
     for e in truth["images"]:
@@ -71,7 +71,7 @@ def run(seq: Path, with_full: bool = True, track: TrackParams | None = None,
             print(f"  {seq.name} frame {e['frame']}: {r.anchor}", file=sys.stderr)
         if with_full:
             c0 = time.process_time()
-            m = measure(img, camera, holder, method, params, limits)
+            m = measure(img, camera, holder, method, params, limits, edge_look=edge_look)
             row["full_cpu_ms"] = (time.process_time() - c0) * 1e3
             row["full_ok"] = bool(m.ok)
             ferr = (pose_errors(R, t, m.pose.R, m.pose.t_mm).dof[0] if m.pose is not None
@@ -193,6 +193,8 @@ def main() -> int:
     ap.add_argument("--method", default="dm+", help="the tracker's and the reference full "
                     "measurement's pose method (dm+b: the design edge, the tracked frames "
                     "carry its correction)")
+    ap.add_argument("--edge-look", default=None, help="an edge look file from "
+                    "`cutterpose calibrate-edge-look` (dm+b: tracker and full measurement)")
     ap.add_argument("--track", action="append", default=[], metavar="NAME=VALUE",
                     help="a TrackParams field (repeatable), e.g. max_rms_px=0.5")
     a = ap.parse_args()
@@ -204,7 +206,12 @@ def main() -> int:
 
     tp = TrackParams(**{k: number(v) for k, v in (x.split("=", 1) for x in a.track)})
     for seq in a.sequences:
-        rows = run(seq, not a.no_full, tp, a.method)
+        look = None
+        if a.edge_look:
+            from cutterpose.calibration.edge_look import load_edge_look
+
+            look = load_edge_look(a.edge_look)
+        rows = run(seq, not a.no_full, tp, a.method, look)
         out = a.out / seq.name
         out.mkdir(parents=True, exist_ok=True)
         keys = list(dict.fromkeys(k for r in rows for k in r))
