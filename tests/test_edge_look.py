@@ -272,3 +272,15 @@ def test_tracker_fits_the_calibrated_look(new_holder):
     b1 = calib.measurement.estimate.info["band"]
     assert not b0.calibrated and b1.calibrated
     assert (b1.fit.best.look.specular, b1.fit.best.look.shininess) == (1.3, 33.0)
+
+
+def test_only_methods_that_take_a_look_get_it(new_holder):
+    """The registry says which refinement takes a calibrated look (``dm+b``); ``dm+r`` is run
+    without it rather than failing on an unexpected keyword."""
+    from cutterpose.methods import get_method
+
+    assert get_method("dm+b").takes_edge_look
+    assert not get_method("dm+r").takes_edge_look
+    _, img, cal, _ = new_holder
+    m = measure(img, CAM, HOLDER, method="dm+r", edge_look=cal)
+    assert m.estimate.method == "dm+r"

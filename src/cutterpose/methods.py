@@ -33,7 +33,8 @@ class Method:
     spurious) and ``close_start_rms_px``. ``base`` and ``refine``: a method that refines the
     pose of ``base`` with more than the corners (the edge model, the image):
     ``refine(start, features, camera, model, shapes) -> PoseEstimate`` (``dm+r``, ``dm+b``;
-    their ``solve`` on corners alone is the registered fallback).
+    their ``solve`` on corners alone is the registered fallback). ``takes_edge_look``: its
+    ``refine`` also takes ``edge_look=`` (a look calibrated in the cell: ``dm+b``).
     """
 
     name: str
@@ -43,6 +44,7 @@ class Method:
     searches_range: bool = False
     base: str | None = None
     refine: Callable | None = None
+    takes_edge_look: bool = False
 
 
 # name -> (module, attribute, needs_correspondences, description)
@@ -79,7 +81,8 @@ _PIPELINE: dict[str, dict] = {
     "dm+": {"searches_range": True},
     "dm-paper": {"searches_range": True},
     "dm+r": {"base": "dm+", "refine": ("cutterpose.solvers.edge_radius", "refine_features")},
-    "dm+b": {"base": "dm+", "refine": ("cutterpose.solvers.edge_band", "refine_features")},
+    "dm+b": {"base": "dm+", "refine": ("cutterpose.solvers.edge_band", "refine_features"),
+             "takes_edge_look": True},
 }
 
 

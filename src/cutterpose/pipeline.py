@@ -39,7 +39,6 @@ Convention:
 
 from __future__ import annotations
 
-import inspect
 import json
 import math
 import time
@@ -388,7 +387,7 @@ def _refine(method: str, features: Features, camera: Camera, holder: Holder,
     start = _solve(m.base, features.corners_px, camera, holder, limits, features.order,
                    features.H_ideal_holder)
     kw = {}
-    if edge_look is not None and "edge_look" in inspect.signature(m.refine).parameters:
+    if edge_look is not None and m.takes_edge_look:
         kw["edge_look"] = edge_look
     return m.refine(start, features, camera, holder, EDGE_SHAPE_FITS[limits.edge_shape], **kw)
 

@@ -383,7 +383,8 @@ def _scan(Y, models, m0, w_idx, shifts_idx):
                    for v in (prod[..., 0], prod[..., 1], s2))              # (S, M, H)
     den = s2 - s1 * s1 / G
     gain = num / np.maximum(den, 1e-12)
-    cost = np.sum(Yc * Yc, axis=-1)[:, None, None] - gain * num
+    # a residual sum of squares; float32 window sums can leave a near-perfect fit a hair below 0
+    cost = np.maximum(np.sum(Yc * Yc, axis=-1)[:, None, None] - gain * num, 0.0)
     ok = (gain > 0) & inside[:, None, :]
     return np.where(ok, cost, np.inf), gain
 
