@@ -45,6 +45,35 @@ def log(message: str) -> None:
     typer.echo(message, err=True)
 
 
+def _edge_look_option():
+    """``--edge-look``, the same in every command that measures with ``dm+b``."""
+    return typer.Option(None, "--edge-look", help="Edge look file from `calibrate-edge-look` "
+                        "(dm+b fits the calibrated look).")
+
+
+def _load_edge_look(path: str | None):
+    """The calibrated look of ``--edge-look`` (None: the generic looks)."""
+    if not path:
+        return None
+    from .calibration.edge_look import load_edge_look
+
+    return load_edge_look(path)
+
+
+def _convention_option(what: str):
+    """``--convention`` of a pose file (``what``: which file)."""
+    return typer.Option(None, help=f"Pose convention of {what} that does not state it: "
+                        "protocol, quat-xyzw, quat-wxyz, abb, ur, rotvec, kuka, fanuc, matrix.")
+
+
+def _length_unit_option(what: str):
+    return typer.Option(None, help=f"mm or m, for {what} that does not state it.")
+
+
+def _angle_unit_option(what: str):
+    return typer.Option(None, help=f"deg or rad, for {what} that does not state it.")
+
+
 # ---- section: experiment synthetic (issue 2) ---------------------------------------------
 @experiment_app.command("synthetic")
 @friendly
@@ -308,17 +337,15 @@ def measure_cmd(
                                    "drawing gives it: round, chamfer, or unknown (default: dm+b "
                                    "tells them apart; dm+r's verdict then carries the chamfer's "
                                    "depth the contour cannot see)."),
-    edge_look: str = typer.Option(None, "--edge-look", help="Edge look file from "
-                                  "`calibrate-edge-look` (dm+b fits the calibrated look)."),
+    edge_look: str = _edge_look_option(),
     handeye: str = typer.Option(None, "--handeye", help="handeye.json: also answer in the "
                                 "robot's base frame (needs --flange-pose)."),
     flange_pose: str = typer.Option(None, "--flange-pose", help="T_base_flange at the "
                                     "picture: a one-row pose file or x_mm,y_mm,z_mm,qx,qy,qz,"
                                     "qw inline."),
-    convention: str = typer.Option(None, help="Convention of a --flange-pose file that does "
-                                   "not state it."),
-    length_unit: str = typer.Option(None, help="mm or m, for a --flange-pose file."),
-    angle_unit: str = typer.Option(None, help="deg or rad, for a --flange-pose file."),
+    convention: str = _convention_option("a --flange-pose file"),
+    length_unit: str = _length_unit_option("a --flange-pose file"),
+    angle_unit: str = _angle_unit_option("a --flange-pose file"),
     robot_accuracy_mm: float = typer.Option(0.05, help="Robot position error, mm per axis "
                                             "(1 sigma)."),
     robot_accuracy_deg: float = typer.Option(0.01, help="Robot angle error, deg per axis "
@@ -342,11 +369,7 @@ def measure_cmd(
 
     cam = _render_camera(camera)
     hol = load_holder(holder) if holder else None
-    look = None
-    if edge_look:
-        from .calibration.edge_look import load_edge_look
-
-        look = load_edge_look(edge_look)
+    look = _load_edge_look(edge_look)
     if (handeye is None) != (flange_pose is None):
         raise InputError("the base frame needs both --handeye and --flange-pose")
     robot = None
@@ -434,8 +457,7 @@ def experiment_images_cmd(
                               "no refinement, no fall-back)."),
     edge_shape: str = typer.Option("unknown", help="The pocket edge's break (holder drawing): "
                                    "round, chamfer or unknown (default: both shapes fitted)."),
-    edge_look: str = typer.Option(None, "--edge-look", help="Edge look file from "
-                                  "`calibrate-edge-look` (dm+b fits the calibrated look)."),
+    edge_look: str = _edge_look_option(),
 ):
     """Table 2 figures of every method on an image set (trials.csv, summary.md)."""
     from rich.progress import Progress
@@ -455,11 +477,7 @@ def experiment_images_cmd(
         task = bar.add_task("images", total=None)
         from .pipeline import QualityLimits
 
-        look = None
-        if edge_look:
-            from .calibration.edge_look import load_edge_look
-
-            look = load_edge_look(edge_look)
+        look = _load_edge_look(edge_look)
         run_images(folder, names, out, workers=workers, limit=limit, scheduler=scheduler,
                    params=chains[chain](), limits=QualityLimits(edge_shape=edge_shape),
                    progress=lambda done, n: bar.update(task, completed=done, total=n),
@@ -546,8 +564,7 @@ def track_cmd(
     filter_: bool = typer.Option(False, "--filter", help="Also report a constant-velocity "
                                  "filtered pose (beside the raw one)."),
     json_lines: bool = typer.Option(False, "--json-lines", help="One JSON object per frame."),
-    edge_look: str = typer.Option(None, "--edge-look", help="Edge look file from "
-                                  "`calibrate-edge-look` (dm+b fits the calibrated look)."),
+    edge_look: str = _edge_look_option(),
 ):
     """Track the holder through a sequence: edges predicted from the previous pose, the full
     measurement on the first frame and whenever tracking fails (said per frame)."""
@@ -560,11 +577,7 @@ def track_cmd(
     from .tracking import Tracker
 
     cam = _render_camera(camera)
-    look = None
-    if edge_look:
-        from .calibration.edge_look import load_edge_look
-
-        look = load_edge_look(edge_look)
+    look = _load_edge_look(edge_look)
     tracker = Tracker(cam, load_holder(holder) if holder else None, method, filter=filter_,
                       edge_look=look)
     size = parse_raw_size(raw) if raw else None
@@ -679,10 +692,9 @@ def render_plate_cmd(
     plate_poses: str = typer.Option(None, "--plate-poses", help="Render one image per pose "
                                     "of this pose file (T_cam_plate, any convention of "
                                     "`cutterpose.robot.poses`) instead of drawing poses."),
-    convention: str = typer.Option(None, help="--plate-poses: pose convention if the file "
-                                   "does not state it."),
-    length_unit: str = typer.Option(None, help="--plate-poses: mm or m, if not stated."),
-    angle_unit: str = typer.Option(None, help="--plate-poses: deg or rad, if not stated."),
+    convention: str = _convention_option("a --plate-poses file"),
+    length_unit: str = _length_unit_option("a --plate-poses file"),
+    angle_unit: str = _angle_unit_option("a --plate-poses file"),
 ):
     """Render images of the circle calibration plate at poses that cover the field, at given
     poses (--plate-poses), or from the stations of a simulated robot cell (--robot-cell)."""
@@ -821,10 +833,9 @@ def calibrate_edge_look_cmd(
     camera: str = typer.Option(None, help="table1 (default), synthetic, or a camera file "
                                "(with --poses)."),
     holder: str = typer.Option(None, help="Holder JSON file (with --poses; default: bundled)."),
-    convention: str = typer.Option(None, help="Convention of a --poses file that does not "
-                                   "state it."),
-    length_unit: str = typer.Option(None, help="mm or m, for a --poses file."),
-    angle_unit: str = typer.Option(None, help="deg or rad, for a --poses file."),
+    convention: str = _convention_option("a --poses file"),
+    length_unit: str = _length_unit_option("a --poses file"),
+    angle_unit: str = _angle_unit_option("a --poses file"),
     edge_shape: str = typer.Option("unknown", help="The reference holder's break: round, "
                                    "chamfer, or unknown (chosen per image by cost); with a "
                                    "rendered set, 'truth' takes each image's from truth.json."),
@@ -934,11 +945,9 @@ def handeye_cmd(
     camera: str = typer.Option(None, help="table1 (default), synthetic, or a camera file."),
     plate_file: str = typer.Option(None, "--plate", help="plate.json (default: the 7x7 "
                                    "30 mm plate)."),
-    convention: str = typer.Option(None, help="Pose convention, if the file does not state "
-                                   "it: protocol, quat-xyzw, quat-wxyz, abb, ur, rotvec, kuka, "
-                                   "fanuc, matrix."),
-    length_unit: str = typer.Option(None, help="mm or m, if the file does not state it."),
-    angle_unit: str = typer.Option(None, help="deg or rad, if the file does not state it."),
+    convention: str = _convention_option("the --robot-poses file"),
+    length_unit: str = _length_unit_option("the --robot-poses file"),
+    angle_unit: str = _angle_unit_option("the --robot-poses file"),
     repeatability_mm: float = typer.Option(0.03, help="Robot position noise, mm per axis."),
     repeatability_deg: float = typer.Option(0.005, help="Robot rotation noise, deg per axis."),
     refinement: str = typer.Option("marginal", help="marginal (robot errors integrated out) "
