@@ -34,9 +34,10 @@ from cutterpose.image.edge_band import (
     _fit_looks,
     _ModelBank,
     band_looks,
+    model_grid_px,
     sample_band,
 )
-from cutterpose.solvers.edge_band import _sd, fit_pose_design_points
+from cutterpose.solvers.edge_band import design_pose
 
 
 def main() -> None:
@@ -57,7 +58,7 @@ def main() -> None:
         R, t = np.array(im["R_cam_holder"]), np.array(im["t_cam_holder_mm"])
         dof_true = Pose(R, t).dof
         bp = sample_band(img, cam, holder, R, t, n_seg=4, positions=12)
-        grid = (float(bp.w_px[0]) - 14.0, float(bp.w_px[-1]) + 14.0)
+        grid = model_grid_px(bp)
         bank = _ModelBank(em.edge_views(R, t, cam.K, holder), grid)
         rows = []
         for lk in band_looks():
@@ -67,10 +68,7 @@ def main() -> None:
                 v = bp.valid & np.isfinite(lf.shift_var_px2) & np.isfinite(lf.cost)
                 if v.sum() < 6:
                     continue
-                fit = BandFit(lf, [], bp)
-                dof = fit_pose_design_points(fit.design_points_px()[v], bp.normals_ideal[v],
-                                             bp.points_holder_mm[v], cam.K, dof_true,
-                                             _sd(lf)[v])[0]
+                dof = design_pose(BandFit(lf, [], bp), lf, cam.K, dof_true, v)
                 rows.append((lf.total, lf, float(np.median(lf.shift_px[v])),
                              float(dof[5] - dof_true[5])))
         rows.sort(key=lambda r: r[0])

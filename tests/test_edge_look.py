@@ -28,7 +28,7 @@ from cutterpose.geometry.camera import default_camera
 from cutterpose.geometry.holder import default_holder
 from cutterpose.geometry.pose import Pose
 from cutterpose.image import edge_model as em
-from cutterpose.image.edge_band import STEP_PX, sample_band
+from cutterpose.image.edge_band import STEP_PX, model_grid_px, sample_band
 from cutterpose.pipeline import QualityLimits, measure
 from cutterpose.render.analytic import preset, render_holder
 
@@ -52,7 +52,7 @@ def model_reference(pose: Pose, look: em.EdgeLook, seed: int, blur_px: float = 0
     r_edge = rng.uniform(0.5, 1.6, n)
     per_end = np.stack([np.roll(r_edge, 1), r_edge], axis=1)[..., None]     # (N, 2, 1)
     view = em.edge_views(pose.R, pose.t_mm, CAM.K, HOLDER, look)
-    grid = (float(bp.w_px[0]) - 14.0, float(bp.w_px[-1]) + 14.0)
+    grid = model_grid_px(bp)
     w0, (bl,) = em.blurred_profiles(per_end, view, em.cross_section(view, look),
                                     [(blur_px, 0.0)], grid, STEP_PX)
     f = bp.frac[:, None]

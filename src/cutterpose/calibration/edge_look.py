@@ -92,12 +92,7 @@ from ..image.edge_band import (
     sample_band,
 )
 from ..image_set import load_image_set
-from ..solvers.edge_band import (
-    MIN_SD_PX,
-    POSITIONS_PER_SEGMENT,
-    SEGMENTS_PER_EDGE,
-    fit_pose_design_points,
-)
+from ..solvers.edge_band import POSITIONS_PER_SEGMENT, SEGMENTS_PER_EDGE, design_pose
 
 __all__ = ["ReferenceImage", "EdgeLookCalibration", "reference_image", "load_reference_set",
            "load_reference_images", "calibrate_edge_look", "calibrate_offsets",
@@ -493,15 +488,9 @@ def calibrate_edge_look(refs: list[ReferenceImage], start: em.EdgeLook | None = 
 def _pose_error_at_truth(ref: ReferenceImage, f, offset_mm: float = 0.0):
     """(6,) error of the pose fitted (as ``dm+b`` fits it, from the true pose) to the fit's
     design-edge points moved outwards by ``offset_mm``; None with fewer than 6 points."""
-    v = ref.profiles.valid & np.isfinite(f.best.shift_var_px2) & (f.best.shift_var_px2 >= 0)
-    if v.sum() < 6:
-        return None
-    sd = np.maximum(np.sqrt(f.best.shift_var_px2[v]), MIN_SD_PX)
-    n = ref.profiles.normals_ideal[v]
-    p = f.design_points_px()[v] + (offset_mm * ref.profiles.px_per_mm[v])[:, None] * n
     dof = Pose(ref.R_cam_holder, ref.t_cam_holder_mm).dof
-    return fit_pose_design_points(p, n, ref.profiles.points_holder_mm[v], ref.camera.K, dof,
-                                  sd)[0] - dof
+    e = design_pose(f, f.best.moved(offset_mm, ref.profiles.px_per_mm), ref.camera.K, dof) - dof
+    return e if np.all(np.isfinite(e)) else None
 
 
 def calibrate_offsets(refs: list[ReferenceImage], cal: EdgeLookCalibration,

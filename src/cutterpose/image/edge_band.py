@@ -60,7 +60,7 @@ from ..geometry.holder import Holder
 from . import edge_model as em
 
 __all__ = ["BandProfiles", "BandFit", "BandLooks", "sample_band", "fit_band", "band_looks",
-           "profile_costs", "CAL_RADII_MM"]
+           "profile_costs", "model_grid_px", "CAL_RADII_MM"]
 
 #: the radii the coarse scan tries (mm) and the fine step
 COARSE_RADII_MM = np.array([0.0, 0.25, 0.5, 0.75, 1.0, 1.25, 1.5, 2.0, 2.5, 3.0, 3.5, 4.0, 4.5,
@@ -116,8 +116,9 @@ class BandLooks:
     def for_shape(self, shape: str) -> em.EdgeLook:
         return replace(self.look, shape=shape, profile_sigma_px=0.0)
 
-    def offset_px(self, shape: str, px_per_mm: np.ndarray) -> np.ndarray:
-        return dict(self.offset_mm).get(shape, 0.0) * np.asarray(px_per_mm, float)
+    def offset(self, shape: str) -> float:
+        """The calibrated design-edge offset of ``shape`` (mm; 0 when not calibrated)."""
+        return dict(self.offset_mm).get(shape, 0.0)
 
 
 def band_looks(shapes=("round", "chamfer")) -> list[em.EdgeLook]:
@@ -300,6 +301,11 @@ class LookFit:
     #: (S,) variance of the shift (px^2) with the radius free (fine scan; inf: no information)
     shift_var_px2: np.ndarray | None = None
 
+    def moved(self, offset_mm, px_per_mm) -> LookFit:
+        """The same fit with every design-edge point moved outwards by ``offset_mm`` (in the
+        face plane; ``px_per_mm`` per segment)."""
+        return replace(self, shift_px=self.shift_px + offset_mm * np.asarray(px_per_mm, float))
+
 
 @dataclass
 class BandFit:
@@ -313,6 +319,12 @@ class BandFit:
         lf = lf or self.best
         p = self.profiles
         return p.points_ideal_px + lf.shift_px[:, None] * p.normals_ideal
+
+
+def model_grid_px(bp: BandProfiles) -> tuple[float, float]:
+    """The model profiles' extent (px) for the samples of ``bp``: the samples, the shifts
+    scanned (<= COARSE_SHIFT_PX + a fine step) and the blur's reach (<= 7 px) either side."""
+    return float(bp.w_px[0]) - 14.0, float(bp.w_px[-1]) + 14.0
 
 
 class _ModelBank:
@@ -468,8 +480,7 @@ def _fit_looks(bp: BandProfiles, bank: _ModelBank, looks, coarse: LookFit | None
 
 def _look_fit(bp: BandProfiles, look, r, s, c, g, var) -> LookFit:
     c = np.where(bp.valid, c, np.inf)
-    with np.errstate(invalid="ignore"):     # a float32 cancellation may leave c < 0: NaN
-        rms = np.sqrt(c / len(bp.w_px))
+    rms = np.sqrt(c / len(bp.w_px))         # c >= 0: _scan clamps the residual sum
     var = np.where(bp.valid, var, np.inf)
     return LookFit(look, r, s, c, g, rms, _trimmed_total(c, bp.valid), var)
 
@@ -500,7 +511,8 @@ def _shift_variance(cost, mi, hi, dr, ds, r_at_zero, n_samples) -> np.ndarray:
     at_zero = r_at_zero & (mi == 0)
     var = np.where(at_zero, held, free)
     edge = (hi == 0) | (hi == nh - 1) | (~at_zero & ((mi == 0) | (mi == nr - 1)))
-    return np.where(edge | ~np.isfinite(var), np.inf, var)
+    # not (var >= 0): NaN or a negative variance (a cost curving the wrong way) informs nothing
+    return np.where(edge | ~np.isfinite(var) | ~(var >= 0), np.inf, var)
 
 
 def _trimmed_total(cost, valid) -> float:
@@ -536,11 +548,8 @@ def fit_band(bp: BandProfiles, camera: Camera, holder: Holder, R_cam_holder, t_c
     else:
         candidates, blurs = [looks.for_shape(s) for s in shapes], tuple(looks.blurs_px)
         light = looks.look                  # a calibrated ring light (edge_views' lights)
-    # the model grid: the samples, the shifts scanned (<= COARSE_SHIFT_PX + a fine step) and
-    # the blur's reach (<= 7 px) either side
-    grid = (float(bp.w_px[0]) - 14.0, float(bp.w_px[-1]) + 14.0)
     bank = _ModelBank(em.edge_views(R_cam_holder, t_cam_holder_mm, camera.K, holder, light),
-                      grid)
+                      model_grid_px(bp))
     if previous is not None:
         # a second pass at a pose that moved little: the looks chosen before, scanned anew
         # (coarse, then fine) only for the chosen and the plausible ones
@@ -601,7 +610,7 @@ def _offset(fit: BandFit, looks: BandLooks | None) -> BandFit:
         # segments (only its look is used): left as it is
         if len(lf.shift_px) != len(px):
             return lf
-        return replace(lf, shift_px=lf.shift_px + looks.offset_px(lf.look.shape, px))
+        return lf.moved(looks.offset(lf.look.shape), px)
 
     fit.best = moved(fit.best)
     fit.plausible = [moved(lf) for lf in fit.plausible]
@@ -628,8 +637,7 @@ def profile_costs(bp: BandProfiles, view: em.EdgeView, looks, radii_mm=CAL_RADII
     """
     looks = list(looks)
     h = STEP_PX
-    grid = (float(bp.w_px[0]) - 14.0, float(bp.w_px[-1]) + 14.0)
-    bank = _ModelBank(view, grid)
+    bank = _ModelBank(view, model_grid_px(bp))
     Y = np.where(bp.valid[:, None], bp.values, 0.0)
     w0, bls = bank.profiles(np.asarray(radii_mm, float), looks, h)
     m0 = int(round(-w0[0] / h))

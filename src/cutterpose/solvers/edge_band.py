@@ -51,7 +51,7 @@ from ..geometry.pose import Pose, rotation_from_euler_deg
 from ..image.edge_band import BandFit, BandLooks, fit_band, sample_band
 from .estimate import PoseEstimate
 
-__all__ = ["BandPose", "as_band_looks", "fit_pose_design_points", "measure_band",
+__all__ = ["BandPose", "as_band_looks", "design_pose", "fit_pose_design_points", "measure_band",
            "refine_features", "solve", "SHIFT_FLOOR_MM"]
 
 #: the band model's systematic uncertainty as a uniform outward shift of the design edge (mm
@@ -154,15 +154,20 @@ def _sd(lf) -> np.ndarray:
     return np.maximum(np.sqrt(lf.shift_var_px2), MIN_SD_PX)
 
 
-def _pose_of(fit: BandFit, lf, X, n_img, K, dof0, valid):
-    v = valid & np.isfinite(lf.shift_var_px2) & (lf.shift_var_px2 >= 0)
+def design_pose(fit: BandFit, lf, K, dof0, valid=None) -> np.ndarray:
+    """(6,) pose (dof) fitted from ``dof0`` to the design-edge points of the look fit ``lf``
+    of ``fit`` (its ``valid`` segments with a finite shift variance, weighted by it); inf with
+    fewer than 6 such segments."""
+    bp = fit.profiles
+    v = (bp.valid if valid is None else valid) & np.isfinite(lf.shift_var_px2)
     if v.sum() < 6:
         return np.full(6, np.inf)
     p = fit.design_points_px(lf)[v]
-    return fit_pose_design_points(p, n_img[v], X[v], K, dof0, _sd(lf)[v])[0]
+    return fit_pose_design_points(p, bp.normals_ideal[v], bp.points_holder_mm[v], K, dof0,
+                                  _sd(lf)[v])[0]
 
 
-def _look_spread(fit: BandFit, X, n_img, K, dof, valid) -> np.ndarray:
+def _look_spread(fit: BandFit, K, dof, valid) -> np.ndarray:
     """(6, 6) second moment of the plausible looks' poses about the chosen one, each weighted
     by its relative likelihood with the segments as independent observations of the look:
     ``w_l = (C_best / C_l)^(n / 2)``, ``n`` the segments in the trimmed cost (a BIC-style
@@ -170,7 +175,7 @@ def _look_spread(fit: BandFit, X, n_img, K, dof, valid) -> np.ndarray:
     if not fit.plausible:
         return np.zeros((6, 6))
     n = max(1, int(np.ceil(0.75 * int(valid.sum()))))
-    d = np.array([_pose_of(fit, lf, X, n_img, K, dof, valid) - dof for lf in fit.plausible])
+    d = np.array([design_pose(fit, lf, K, dof, valid) - dof for lf in fit.plausible])
     ratio = np.array([fit.best.total / lf.total for lf in fit.plausible])
     w = np.exp(0.5 * n * np.log(np.clip(ratio, 1e-12, 1.0)))
     return np.einsum("l,li,lj->ij", w, d, d) / (1.0 + w.sum())
@@ -208,9 +213,7 @@ def measure_band(image, camera: Camera, holder: Holder, start: PoseEstimate,
             fit = fit_band(bp, camera, holder, R, dof[3:], shapes,
                            previous=fit if passes > 1 else None, fine_plausible=last,
                            looks=looks)
-            # (a variance below 0: a float32 cancellation in a near-perfect fit's cost)
-            valid &= (np.isfinite(fit.best.cost) & np.isfinite(fit.best.shift_var_px2)
-                      & (fit.best.shift_var_px2 >= 0))
+            valid &= np.isfinite(fit.best.cost) & np.isfinite(fit.best.shift_var_px2)
             if valid.sum() < MIN_SEGMENT_FRACTION * len(valid):
                 return PoseEstimate.failure(
                     "dm+b", f"the band's profile fixes the design edge on {int(valid.sum())} "
@@ -227,14 +230,11 @@ def measure_band(image, camera: Camera, holder: Holder, start: PoseEstimate,
         cov_noise = max(s, 1.0) ** 2 * np.linalg.inv(info)
     except np.linalg.LinAlgError:
         cov_noise = np.full((6, 6), np.inf)
-    X, n_img = bp.points_holder_mm, bp.normals_ideal
-    cov_model = _look_spread(fit, X, n_img, K, dof, valid)
+    cov_model = _look_spread(fit, K, dof, valid)
 
     def uniform(shift_mm: float) -> np.ndarray:
         """The pose change for a uniform outward shift of every design point (mm)."""
-        p_shift = (fit.design_points_px()[valid]
-                   + (shift_mm * bp.px_per_mm[valid])[:, None] * n_img[valid])
-        return fit_pose_design_points(p_shift, n_img[valid], X[valid], K, dof, sd)[0] - dof
+        return design_pose(fit, fit.best.moved(shift_mm, bp.px_per_mm), K, dof, valid) - dof
 
     if looks is not None:
         # a calibrated look: the scatter of the design-edge offset over the reference images
