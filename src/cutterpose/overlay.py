@@ -80,7 +80,7 @@ def draw_overlay(image: np.ndarray, measurement, camera: Camera, holder: Holder,
             if np.all(np.isfinite(poly)):
                 cv2.polylines(out, [_pts(poly, scale, origin)], True, (255, 0, 255), 1, aa,
                               _SHIFT)
-    band = None if measurement.estimate is None else measurement.estimate.info.get("band")
+    band = measurement.edge_band
     if band is not None:
         # dm+b: each segment's design-edge point with a tick across the band (its measured
         # width: the radius times px per mm), white = used, red = down-weighted or not used

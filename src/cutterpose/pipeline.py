@@ -176,6 +176,11 @@ class Measurement:
         b = self.quality.budget
         return math.nan if b is None else b.radius_mm
 
+    @property
+    def edge_band(self):
+        """``dm+b``'s band fit (:class:`~cutterpose.solvers.edge_band.BandPose`), else None."""
+        return None if self.estimate is None else self.estimate.info.get("band")
+
     def pose_lines(self) -> list[str]:
         """The pose with its std and the residual as three short lines (CLI and overlay)."""
         if self.pose is None:
@@ -186,7 +191,7 @@ class Measurement:
                  f"(std {s[0]:.3f} {s[1]:.3f} {s[2]:.3f})",
                  f"X {x:8.2f}  Y {y:8.2f}  Z {z:8.2f} mm   (std {s[3]:.3f} {s[4]:.3f} {s[5]:.3f})",
                  f"RMS residual {self.quality.rms_px:.3f} px"]
-        band = None if self.estimate is None else self.estimate.info.get("band")
+        band = self.edge_band
         if band is not None:
             d = band.to_dict()
             lines.append(f"edge break: {d['shape']}, radius {d['radius_median_mm']:.2f} mm "
@@ -209,7 +214,7 @@ class Measurement:
                              "threshold": f.threshold, "refined": f.refined,
                              "n_segments": len(f.segments), "segmentation": f.segmentation,
                              "order": f.order, "visible": np.asarray(f.visible).tolist()}
-        band = None if self.estimate is None else self.estimate.info.get("band")
+        band = self.edge_band
         if band is not None:
             d["edge_band"] = band.to_dict()
         if self.robot is not None:
@@ -554,10 +559,7 @@ def worst_line_residual(pose: Pose, features: Features, camera: Camera, holder: 
     seen = np.asarray(features.lines_visible, bool) & np.isfinite(L).all(axis=1)
     if not seen.any():
         return -1, 0.0
-    c = np.asarray(holder.corners_mm, float)
-    P = np.column_stack([c, np.zeros(len(c))])
-    X = P @ pose.R.T + pose.t_mm
-    q = (X[:, :2] / X[:, 2:]) @ camera.K[:2, :2].T + camera.K[:2, 2]
+    q = _project_ideal(pose.dof, camera, holder)
     a, b = q, np.roll(q, -1, axis=0)                 # edge k runs from corner k to k + 1
     n = L[:, :2] / np.linalg.norm(L[:, :2], axis=1, keepdims=True)
     off = L[:, 2] / np.linalg.norm(L[:, :2], axis=1)
@@ -686,7 +688,7 @@ def _demo_report(m: Measurement, truth: Pose, out: Path) -> str:
         for k, n in enumerate(names):
             lines.append(f"{n:10s} {est[k]:10.4f} {m.std_dof[k]:8.4f} {tru[k]:10.4f} "
                          f"{err[k]:9.4f}")
-        band = m.estimate.info.get("band") if m.estimate is not None else None
+        band = m.edge_band
         what = "edge-segment" if band is not None else "corner"
         lines.append(f"RMS {what} residual {m.quality.rms_px:.3f} px")
         if band is not None:
