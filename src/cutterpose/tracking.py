@@ -110,7 +110,7 @@ from .budget import Tolerance
 from .errors import CutterposeError, InputError
 from .frames import load_frame
 from .geometry.camera import Camera, default_camera
-from .geometry.holder import Holder, default_holder
+from .geometry.holder import Holder, default_holder, outward_edge_normals
 from .geometry.pose import Pose, pixel_jacobian
 from .image import FeatureParams, as_grey_u8
 from .image.edges import intersect_consecutive, robust_edge_lines
@@ -171,17 +171,6 @@ def _left(R: np.ndarray, t: np.ndarray, pose: Pose) -> Pose:
 
 # ------------------------------------------------------------------------------------------
 # the tracked edges of a broken edge: the design contour moved edge by edge in the face plane
-def _outward_normals(corners_mm: np.ndarray) -> np.ndarray:
-    """(N, 2) unit normals of the edges (edge ``k``: corner ``k`` to ``k + 1``) pointing out
-    of the polygon (away from the pocket), for either orientation."""
-    c = np.asarray(corners_mm, float)
-    d = np.roll(c, -1, axis=0) - c
-    x, y = c.T
-    ccw = np.dot(x, np.roll(y, -1)) - np.dot(np.roll(x, -1), y) > 0
-    n = np.column_stack([d[:, 1], -d[:, 0]]) * (1.0 if ccw else -1.0)
-    return n / np.linalg.norm(n, axis=1, keepdims=True)
-
-
 def offset_polygon_mm(corners_mm: np.ndarray, offset_mm: np.ndarray) -> np.ndarray:
     """(N, 3) corners (holder frame, ``Z = 0``) of the polygon whose edge ``k`` is the design
     edge ``k`` moved by ``offset_mm[k]`` along its outward normal in the face plane (negative:
@@ -189,7 +178,7 @@ def offset_polygon_mm(corners_mm: np.ndarray, offset_mm: np.ndarray) -> np.ndarr
     nearly parallel neighbours are moved along the edge normal instead)."""
     c = np.asarray(corners_mm, float)
     d = np.asarray(offset_mm, float)
-    n = _outward_normals(c)
+    n = outward_edge_normals(c)
     rhs = np.einsum("ij,ij->i", n, c) + d            # edge k: n_k . x = n_k . c_k + d_k
     A = np.stack([np.roll(n, 1, axis=0), n], axis=1)  # corner i: edges i - 1 and i
     b = np.column_stack([np.roll(rhs, 1), rhs])
@@ -563,7 +552,7 @@ class Tracker:
         offset carried; an edge not seen keeps its last offset (the seen edges' median the
         first time)."""
         c = np.asarray(self.holder.corners_mm, float)
-        nrm = _outward_normals(c)
+        nrm = self.holder.edge_normals
         ks = np.nonzero(seen)[0]
         if len(ks) == 0:
             return

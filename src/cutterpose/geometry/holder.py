@@ -21,7 +21,19 @@ from ..errors import HolderModelError, InputError
 from .jsonfile import read_json
 from .pose import Pose
 
-__all__ = ["Holder", "load_holder", "default_holder", "holder_from_dict"]
+__all__ = ["Holder", "load_holder", "default_holder", "holder_from_dict",
+           "outward_edge_normals"]
+
+
+def outward_edge_normals(corners_mm) -> np.ndarray:
+    """(N, 2) unit normals of a polygon's edges (edge ``k``: corner ``k`` to ``k + 1``)
+    pointing out of it (for the pocket contour: away from the pocket), either orientation."""
+    c = np.asarray(corners_mm, float)
+    d = np.roll(c, -1, axis=0) - c
+    x, y = c.T
+    ccw = np.dot(x, np.roll(y, -1)) - np.dot(np.roll(x, -1), y) > 0
+    n = np.column_stack([d[:, 1], -d[:, 0]]) * (1.0 if ccw else -1.0)
+    return n / np.linalg.norm(n, axis=1, keepdims=True)
 
 
 @dataclass(frozen=True)
@@ -58,6 +70,12 @@ class Holder:
             P.flags.writeable = False
             self._cache["points"] = P
         return P
+
+    @property
+    def edge_normals(self) -> np.ndarray:
+        """(N, 2) unit normals of the edges in the face plane, pointing out of the pocket
+        (:func:`outward_edge_normals`)."""
+        return outward_edge_normals(self.corners_mm)
 
     @property
     def area_mm2(self) -> float:

@@ -190,7 +190,7 @@ def sample_band(image: np.ndarray, camera: Camera, holder: Holder, R_cam_holder,
     seen = np.ones(n, bool) if edges_seen is None else np.asarray(edges_seen, bool)
     nxt = np.roll(c, -1, axis=0)
     d = (nxt - c) / np.linalg.norm(nxt - c, axis=1, keepdims=True)
-    o = np.column_stack([d[:, 1], -d[:, 0]])
+    o = holder.edge_normals
     span = (1 - 2 * trim) / n_seg
     seg_edge = np.repeat(np.arange(n), n_seg)
     j = np.tile(np.arange(n_seg), n)

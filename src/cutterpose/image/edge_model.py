@@ -155,13 +155,6 @@ class EdgeView:
     outward: np.ndarray
 
 
-def _outward_normals(holder: Holder) -> np.ndarray:
-    """(N, 2) unit normals of the edges pointing away from the pocket (corners CCW)."""
-    d = np.roll(holder.corners_mm, -1, axis=0) - holder.corners_mm
-    d = d / np.linalg.norm(d, axis=1, keepdims=True)
-    return np.column_stack([d[:, 1], -d[:, 0]])
-
-
 def edge_views(R_cam_holder, t_cam_holder_mm, K, holder: Holder,
                look: EdgeLook = EdgeLook(), n_ring: int = 8) -> EdgeView:
     """Viewing and lighting geometry at both ends of every edge (module doc)."""
@@ -170,7 +163,7 @@ def edge_views(R_cam_holder, t_cam_holder_mm, K, holder: Holder,
     K = np.asarray(K, float)
     c = holder.corners_mm
     n = len(c)
-    o_edge = _outward_normals(holder)
+    o_edge = holder.edge_normals
     o = np.stack([np.roll(o_edge, 1, axis=0), o_edge], axis=1)         # (N, 2, 2)
     tang = np.stack([np.roll(np.roll(c, -1, 0) - c, 1, 0), np.roll(c, -1, 0) - c], axis=1)
     tang = tang / np.linalg.norm(tang, axis=2, keepdims=True)
