@@ -28,7 +28,13 @@ from cutterpose.geometry.camera import default_camera
 from cutterpose.geometry.holder import default_holder
 from cutterpose.geometry.pose import Pose
 from cutterpose.image import edge_model as em
-from cutterpose.image.edge_band import STEP_PX, model_grid_px, sample_band
+from cutterpose.image.edge_band import (
+    STEP_PX,
+    BandLooks,
+    model_grid_px,
+    sample_band,
+    view_lean,
+)
 from cutterpose.pipeline import QualityLimits, measure
 from cutterpose.render.analytic import preset, render_holder
 
@@ -40,9 +46,11 @@ runner = CliRunner()
 
 
 def model_reference(pose: Pose, look: em.EdgeLook, seed: int, blur_px: float = 0.9,
-                    shift_mm: float = 0.0, n_seg: int = 2) -> ReferenceImage:
+                    shift_mm: float = 0.0, n_seg: int = 2,
+                    depth_mm: float = 0.0) -> ReferenceImage:
     """A reference image whose band profiles are the edge model's own for ``look`` at the true
-    pose (its design edge ``shift_mm`` outwards), one radius per edge (0.5-1.6 mm), a grey
+    pose (its design edge ``shift_mm`` outwards, and as if ``depth_mm`` below the face: plus
+    ``depth_mm`` times the segment's view lean), one radius per edge (0.5-1.6 mm), a grey
     offset and gain per segment and 1 grey level of noise: the sampling geometry of
     ``sample_band``, the values of the model."""
     rng = np.random.default_rng(seed)
@@ -58,7 +66,7 @@ def model_reference(pose: Pose, look: em.EdgeLook, seed: int, blur_px: float = 0
     f = bp.frac[:, None]
     m = (1 - f) * bl[bp.edge, 1, 0] + f * bl[(bp.edge + 1) % n, 0, 0]    # (S, G0)
     S = len(bp.edge)
-    shift_px = shift_mm * bp.px_per_mm
+    shift_px = (shift_mm + depth_mm * view_lean(view, bp.edge, bp.frac)) * bp.px_per_mm
     mw = np.array([np.interp(bp.w_px - s, w0, row) for s, row in zip(shift_px, m)])
     y = (rng.uniform(20, 40, (S, 1)) + rng.uniform(120, 200, (S, 1)) * mw
          + rng.normal(0, 1.0, mw.shape))
@@ -109,6 +117,61 @@ def test_offset_calibration_recovers_a_known_offset():
     assert abs(after["mean_mm"]) < 0.004
     back = load_edge_look_dict(cal.to_dict())
     assert back.offset_mm == cal.offset_mm
+
+
+def test_offset_calibration_recovers_a_known_depth():
+    """Profiles whose design edge images as a point 0.3 mm below the face would (a parallax of
+    0.3 mm x the view's lean across the edge, a tilt error that grows with the tilt): the
+    calibration keeps the depth (it predicts left-out images better), finds it, and with it the
+    pose fitted at the known poses loses the error it had (here mostly sideways: a parallax
+    moves the whole contour)."""
+    rng = np.random.default_rng(3)
+    poses = [Pose.from_euler(*rng.uniform(-10, 10, 3), *rng.uniform(-15, 15, 2),
+                             rng.uniform(585, 620)) for _ in range(9)]
+    refs = [model_reference(p, TRUE_LOOK, 30 + i, n_seg=4, depth_mm=0.3)
+            for i, p in enumerate(poses)]
+    cal = _calibration(specular=TRUE_LOOK.specular, shininess=TRUE_LOOK.shininess,
+                       wall_albedo=TRUE_LOOK.wall_albedo, pocket_level=TRUE_LOOK.pocket_level)
+    cal = calibrate_offsets(refs, cal, shapes=("round",))
+    rep = cal.report["design_edge_offset"]["round"]
+    assert rep["loo_error"]["uniform+depth"] < rep["loo_error"]["uniform"]
+    assert abs(dict(cal.offset_depth_mm)["round"] - 0.3) < 0.06, rep
+    before, after = (np.array(rep[k]) for k in ("pose_error_sd_before", "pose_error_sd_after"))
+    assert np.all(after[3:5] < 0.3 * before[3:5]), (before, after)   # X, Y
+    back = load_edge_look_dict(cal.to_dict())
+    assert back.offset_depth_mm == cal.offset_depth_mm
+
+
+def test_offset_of_a_calibrated_depth_follows_the_lean():
+    """``BandLooks.offset``: uniform offset minus depth x lean, per shape; 0 for a shape
+    without a calibration."""
+    lk = BandLooks(em.EdgeLook(), offset_mm=(("chamfer", 0.02),),
+                   offset_depth_mm=(("chamfer", 0.4),))
+    lean = np.array([-0.3, 0.0, 0.2])
+    assert np.allclose(lk.offset("chamfer", lean), 0.02 - 0.4 * lean)
+    assert np.allclose(lk.offset("round", lean), 0.0)
+    assert lk.calibrated_offset and not BandLooks(em.EdgeLook()).calibrated_offset
+
+
+def test_view_lean_is_the_parallax_of_a_point_below_the_face():
+    """A point ``d`` below the face on an edge images where the face point ``d tan(theta)``
+    outwards of it does (``tan(theta)`` from :func:`view_lean`): the camera's ray through the
+    point crosses the face that far out across the edge (along the edge it moves too, which
+    does not move the edge's line)."""
+    pose = Pose.from_euler(6, -5, 3, 20, -10, 600)
+    blank = np.zeros(CAM.image_size_px[::-1], np.uint8)
+    bp = sample_band(blank, CAM, HOLDER, pose.R, pose.t_mm, n_seg=4, positions=4)
+    view = em.edge_views(pose.R, pose.t_mm, CAM.K, HOLDER)
+    lean = view_lean(view, bp.edge, bp.frac)
+    d = 2.0
+    below = bp.points_holder_mm + [0.0, 0.0, d]               # +Z: away from the camera
+    C = -pose.R.T @ pose.t_mm
+    ray = below - C
+    on_face = C + (-C[2] / ray[:, 2])[:, None] * ray
+    across = np.sum((on_face - bp.points_holder_mm)[:, :2] * HOLDER.edge_normals[bp.edge], 1)
+    # linear between the edge's ends: exact at them, to ~1e-3 mm between
+    assert np.abs(across - d * lean).max() < 0.005
+    assert np.ptp(lean) > 0.1
 
 
 def _calibration(**look) -> EdgeLookCalibration:
@@ -167,6 +230,27 @@ def test_edge_look_changes_the_fitted_look(new_holder):
     assert all(photometry(v) != photometry(b2.fit.best.look) for v in varied)
 
 
+def test_calibrated_depth_moves_the_pose_and_enters_the_budget(new_holder):
+    """A calibrated depth of the design edge moves each segment by depth x lean (the pose with
+    it differs from the pose without), and its 1-sigma widens the budget's edge-model term."""
+    from cutterpose.image import FeatureParams, detect_features
+    from cutterpose.solvers.edge_band import refine_features
+
+    pose, img, cal, _ = new_holder
+    feats = detect_features(img, CAM, HOLDER, FeatureParams.for_camera(CAM))
+    start = measure(img, CAM, HOLDER, method="dm+").estimate
+    base = cal.band_looks()
+    shapes = ("round", "chamfer")
+    deep = replace(base, offset_depth_mm=tuple((k, 0.4) for k in shapes))
+    unsure = replace(deep, offset_depth_sd_mm=tuple((k, 0.2) for k in shapes))
+    e0, e1, e2 = (refine_features(start, feats, CAM, HOLDER, edge_look=lk)
+                  for lk in (base, deep, unsure))
+    assert e0 and e1 and e2
+    assert np.linalg.norm(e1.t_cam_holder_mm - e0.t_cam_holder_mm) > 0.02
+    m1, m2 = (np.trace(e.info["band"].cov_parts["edge model"][3:, 3:]) for e in (e1, e2))
+    assert m2 > m1 * 1.2, (m1, m2)
+
+
 def test_cli_edge_look_option(new_holder):
     """``cutterpose measure --edge-look``: the JSON says which look was fitted."""
     _, _, _, d = new_holder
@@ -195,6 +279,8 @@ def _good_dict():
     (lambda d: d.update(x=[0.0, 1.0]), "'x'"),
     (lambda d: d.update(design_edge_offset_mm={"square": 0.01}), "design_edge_offset_mm"),
     (lambda d: d.update(design_edge_offset_mm={"round": 3.0}), "design_edge_offset_mm"),
+    (lambda d: d.update(design_edge_depth_mm={"chamfer": 7.0}), "design_edge_depth_mm"),
+    (lambda d: d.update(design_edge_depth_mm={"chamfer": "deep"}), "design_edge_depth_mm"),
 ])
 def test_malformed_look_file_is_a_typed_error(tmp_path, change, words):
     d = _good_dict()
@@ -203,6 +289,17 @@ def test_malformed_look_file_is_a_typed_error(tmp_path, change, words):
     p.write_text(json.dumps(d))
     with pytest.raises(EdgeLookFileError, match=words):
         load_edge_look(p)
+
+
+def test_version_1_look_file_reads_without_a_depth(tmp_path):
+    """A file written before the depth (version 1) is read, with no depth."""
+    d = _good_dict()
+    d["version"] = 1
+    for k in ("design_edge_depth_mm", "design_edge_depth_sd_mm"):
+        d.pop(k, None)
+    p = tmp_path / "v1.json"
+    p.write_text(json.dumps(d))
+    assert load_edge_look(p).offset_depth_mm == ()
 
 
 def test_look_file_round_trip_and_unreadable_files(tmp_path):

@@ -90,6 +90,7 @@ from ..image.edge_band import (
     fit_band,
     profile_costs,
     sample_band,
+    view_lean,
 )
 from ..image_set import load_image_set
 from ..solvers.edge_band import POSITIONS_PER_SEGMENT, SEGMENTS_PER_EDGE, design_pose
@@ -100,7 +101,12 @@ __all__ = ["ReferenceImage", "EdgeLookCalibration", "reference_image", "load_ref
            "load_edge_look", "PARAM_NAMES", "FORMAT"]
 
 FORMAT = "cutterpose-edge-look"
-VERSION = 1
+#: version 2 adds the design edge's depth (``design_edge_depth_mm``); a version-1 file reads
+#: as depth 0
+VERSION = 2
+READS_VERSIONS = (1, 2)
+#: the largest calibrated depth of the design edge (mm) a file may give
+MAX_DEPTH_MM = 3.0
 #: the fitted parameters, in the fit's coordinates (log for the lobe's weight and exponent)
 PARAM_NAMES = ("log_specular", "log_shininess", "wall_albedo", "pocket_level")
 _LOWER = np.array([math.log(0.01), math.log(2.0), 0.0, 0.0])
@@ -111,8 +117,15 @@ F_SCALE = 2.0
 #: the uniform outward offset (mm) of the design-edge points by which the offset calibration
 #: differentiates the pose (it is linear in it)
 OFFSET_STEP_MM = 0.02
-#: the fewest reference images of a shape for its offset
+#: the fewest reference images of a shape for its offset, and for its depth (the offset's change
+#: with the view's lean across the edge, :func:`calibrate_offsets`)
 MIN_OFFSET_IMAGES = 3
+MIN_DEPTH_IMAGES = 8
+#: the depth step (mm) by which the offset calibration differentiates the pose
+DEPTH_STEP_MM = 0.1
+#: the lever (mm) at which the offset calibration weighs a rotation error against a translation
+#: error (a grasp point ~100 mm from the holder's origin)
+OFFSET_LEVER_MM = 100.0
 #: the largest normalised residual of a segment (a look that cannot fit it at all)
 MAX_RESIDUAL = 10 * F_SCALE
 #: rounds of (shape and blur per image, then the fit); stops early when they hold
@@ -290,6 +303,10 @@ class EdgeLookCalibration:
     #: per shape, the offsets' scatter over the reference images (1 sigma, mm): how far one
     #: image's design edge may be off after the calibration (the budget's edge-model term)
     offset_scatter_mm: tuple[tuple[str, float], ...] = ()
+    #: per shape, the depth (mm) below the face at which the located design edge behaves (the
+    #: offset is ``delta - depth tan(theta)``, :func:`calibrate_offsets`), and its 1-sigma
+    offset_depth_mm: tuple[tuple[str, float], ...] = ()
+    offset_depth_sd_mm: tuple[tuple[str, float], ...] = ()
 
     def sd(self, per_image: bool = False) -> dict:
         """1-sigma of each fitted parameter in its natural unit (delta method through the log
@@ -324,7 +341,8 @@ class EdgeLookCalibration:
         scatter = tuple((k, float(np.hypot(v, dict(self.offset_sd_mm).get(k, 0.0))))
                         for k, v in self.offset_scatter_mm)
         return BandLooks(self.look, self.variants(variant_axes) if variant_axes else (),
-                         tuple(self.blurs_px), tuple(self.offset_mm), scatter)
+                         tuple(self.blurs_px), tuple(self.offset_mm), scatter,
+                         tuple(self.offset_depth_mm), tuple(self.offset_depth_sd_mm))
 
     def to_dict(self) -> dict:
         lk = self.look
@@ -341,6 +359,8 @@ class EdgeLookCalibration:
                 "design_edge_offset_mm": dict(self.offset_mm),
                 "design_edge_offset_sd_mm": dict(self.offset_sd_mm),
                 "design_edge_offset_scatter_mm": dict(self.offset_scatter_mm),
+                "design_edge_depth_mm": dict(self.offset_depth_mm),
+                "design_edge_depth_sd_mm": dict(self.offset_depth_sd_mm),
                 "report": self.report}
 
 
@@ -497,12 +517,27 @@ def calibrate_offsets(refs: list[ReferenceImage], cal: EdgeLookCalibration,
                       shapes=("round", "chamfer")) -> EdgeLookCalibration:
     """The design-edge offset per shape that the calibrated look still leaves (module doc):
     ``dm+b``'s profile fit at each known pose with the look (shape chosen by cost, as at run
-    time), its pose fitted from the true pose to the design-edge points, and the uniform
-    outward offset ``delta`` of those points that zeroes the Z error in least squares over
-    the images of that shape (a uniform offset is what the pose cannot tell from depth, and Z
-    is what it moves). A shape seen on fewer than :data:`MIN_OFFSET_IMAGES` reference images
-    (by its fit: a worn fillet may pass for a chamfer) keeps no offset."""
-    looks = replace(cal.band_looks(), offset_mm=())
+    time) and its pose fitted from the true pose to the design-edge points.
+
+    The offset of a segment is ``delta - d tan(theta)`` (mm outwards;
+    :func:`~cutterpose.image.edge_band.view_lean`): ``delta`` uniform, ``d`` the depth below the
+    face at which the located edge behaves (a point ``d`` below the face images ``d tan(theta)``
+    outwards of the design edge: a parallax that changes sign across the view, i.e. a tilt
+    error proportional to the tilt; on the path-traced ``new`` chamfers the look puts the edge
+    ~0.3 mm down the chamfer). Both are fitted, per shape, to the pose errors at the known
+    poses, linear in them: ``min sum_i |W (e_i + g_i delta + h_i d)|^2`` with ``W`` the
+    rotations at a :data:`OFFSET_LEVER_MM` lever (mm) and the translations in mm (a uniform
+    offset is what the pose cannot tell from depth: it moves Z). The depth is kept only when it
+    predicts the images better in leave-one-out (it does for chamfers of the path-traced
+    ``new`` set, not for fillets) and the shape has :data:`MIN_DEPTH_IMAGES` images or more;
+    otherwise ``d = 0``. Their covariance is cluster-robust over the images. A shape seen on
+    fewer than :data:`MIN_OFFSET_IMAGES` reference images (by its fit: a worn fillet may pass
+    for a chamfer) keeps no offset.
+
+    The offsets' scatter (the budget's edge-model term): the standard deviation over the
+    images of the uniform offset that zeroes each one's Z error with ``d`` applied.
+    """
+    looks = replace(cal.band_looks(), offset_mm=(), offset_depth_mm=())
     per: dict = {}
     for ref in refs:
         f = fit_band(ref.profiles, ref.camera, ref.holder, ref.R_cam_holder,
@@ -510,30 +545,82 @@ def calibrate_offsets(refs: list[ReferenceImage], cal: EdgeLookCalibration,
         e0 = _pose_error_at_truth(ref, f)
         if e0 is None:
             continue
+        lean = view_lean(ref.view(cal.look), ref.profiles.edge, ref.profiles.frac)
         e1 = _pose_error_at_truth(ref, f, OFFSET_STEP_MM)
-        per.setdefault(f.best.look.shape, []).append((e0[5], (e1[5] - e0[5]) / OFFSET_STEP_MM))
-    off, sd_off, scatter, rep = [], [], [], {}
+        e2 = _pose_error_at_truth(ref, f, -DEPTH_STEP_MM * lean)
+        if e1 is None or e2 is None:
+            continue
+        per.setdefault(f.best.look.shape, []).append(
+            (e0, (e1 - e0) / OFFSET_STEP_MM, (e2 - e0) / DEPTH_STEP_MM))
+    off, sd_off, scatter, depth, sd_depth, rep = [], [], [], [], [], {}
     for shape, rows in sorted(per.items()):
-        if len(rows) < MIN_OFFSET_IMAGES:
-            rep[shape] = {"images": len(rows), "offset_mm": None,
+        n = len(rows)
+        if n < MIN_OFFSET_IMAGES:
+            rep[shape] = {"images": n, "offset_mm": None,
                           "note": f"fewer than {MIN_OFFSET_IMAGES} images: no offset"}
             continue
-        e, g = np.array(rows).T
-        delta = float(-np.sum(e * g) / np.sum(g * g))
-        each = -e / g
+        e = np.array([r[0] for r in rows])                          # (n, 6)
+        A = np.stack([np.array([r[1] for r in rows]), np.array([r[2] for r in rows])],
+                     axis=-1)                                       # (n, 6, 2)
+        # the depth only where it predicts images it was not fitted on better
+        cv = {k: _loo_error(e, A[..., :k]) for k in ((1, 2) if n >= MIN_DEPTH_IMAGES else (1,))}
+        k = min(cv, key=cv.get)
+        p, cov = _offset_fit(e, A[..., :k])
+        delta, d = float(p[0]), float(p[1]) if k > 1 else 0.0
+        each = -(e[:, 5] + A[:, 5, 1] * d) / A[:, 5, 0]
         spread = float(np.std(each, ddof=1))
-        sd = spread / math.sqrt(len(each))
         off.append((shape, delta))
-        sd_off.append((shape, sd))
+        sd_off.append((shape, float(math.sqrt(max(cov[0, 0], 0.0)))))
         scatter.append((shape, spread))
-        rep[shape] = {"images": len(each), "offset_mm": delta, "sd_mm": sd,
+        if k > 1:
+            depth.append((shape, d))
+            sd_depth.append((shape, float(math.sqrt(max(cov[1, 1], 0.0)))))
+        after = e + A[..., :k] @ p
+        rep[shape] = {"images": n, "offset_mm": delta, "sd_mm": sd_off[-1][1],
+                      "depth_mm": d if k > 1 else None,
+                      "depth_sd_mm": sd_depth[-1][1] if k > 1 else None,
+                      "loo_error": {("uniform" if j == 1 else "uniform+depth"): float(v)
+                                    for j, v in cv.items()},
                       "scatter_mm": spread,
-                      "z_error_at_truth_mm": float(np.mean(e)),
+                      "z_error_at_truth_mm": float(np.mean(e[:, 5])),
+                      "pose_error_sd_before": [float(v) for v in e.std(axis=0, ddof=1)],
+                      "pose_error_sd_after": [float(v) for v in after.std(axis=0, ddof=1)],
                       "per_image_offset_mm": [float(v) for v in each]}
     report = dict(cal.report)
     report["design_edge_offset"] = rep
     return replace(cal, offset_mm=tuple(off), offset_sd_mm=tuple(sd_off),
-                   offset_scatter_mm=tuple(scatter), report=report)
+                   offset_scatter_mm=tuple(scatter), offset_depth_mm=tuple(depth),
+                   offset_depth_sd_mm=tuple(sd_depth), report=report)
+
+
+def _offset_weights() -> np.ndarray:
+    """The pose error's weights: rotations (deg) at :data:`OFFSET_LEVER_MM`, translations mm."""
+    return np.r_[np.full(3, OFFSET_LEVER_MM * math.pi / 180.0), np.ones(3)]
+
+
+def _offset_fit(e: np.ndarray, A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Offset coefficients ``p`` minimising ``sum_i |W (e_i + A_i p)|^2`` (e (n, 6), A (n, 6,
+    k)) and their cluster-robust covariance over the images (k, k)."""
+    w = _offset_weights()
+    n = len(e)
+    Aw, ew = w[None, :, None] * A, w[None, :] * e
+    H = np.einsum("nkp,nkq->pq", Aw, Aw)
+    p = np.linalg.solve(H, -np.einsum("nkp,nk->p", Aw, ew))
+    g = np.einsum("nkp,nk->np", Aw, ew + Aw @ p)
+    Hi = np.linalg.inv(H)
+    return p, Hi @ (g.T @ g) @ Hi * (n / max(n - 1, 1))
+
+
+def _loo_error(e: np.ndarray, A: np.ndarray) -> float:
+    """Mean weighted squared pose error of each image under the offsets fitted on the others
+    (leave-one-out)."""
+    w = _offset_weights()
+    out = []
+    for i in range(len(e)):
+        keep = np.arange(len(e)) != i
+        p, _ = _offset_fit(e[keep], A[keep])
+        out.append(float(np.sum((w * (e[i] + A[i] @ p)) ** 2)))
+    return float(np.mean(out))
 
 
 def shift_at_truth(refs: list[ReferenceImage], looks: BandLooks | None = None,
@@ -601,9 +688,9 @@ def edge_look_from_dict(d, where: str = "edge look") -> EdgeLookCalibration:
     if not isinstance(d, dict) or d.get("format") != FORMAT:
         raise EdgeLookFileError(f"{where}: not an edge look file ('format' must be "
                                 f"{FORMAT!r}; write one with `cutterpose calibrate-edge-look`)")
-    if d.get("version") != VERSION:
+    if d.get("version") not in READS_VERSIONS:
         raise EdgeLookFileError(f"{where}: version {d.get('version')!r} is not supported "
-                                f"(this build reads version {VERSION})")
+                                f"(this build reads versions {list(READS_VERSIONS)})")
     lk = d.get("look")
     if not isinstance(lk, dict):
         raise EdgeLookFileError(f"{where}: 'look' must be an object")
@@ -634,18 +721,21 @@ def edge_look_from_dict(d, where: str = "edge look") -> EdgeLookCalibration:
                                d.get("report") if isinstance(d.get("report"), dict) else {},
                                _offsets(d, "design_edge_offset_mm", where),
                                _offsets(d, "design_edge_offset_sd_mm", where),
-                               _offsets(d, "design_edge_offset_scatter_mm", where))
+                               _offsets(d, "design_edge_offset_scatter_mm", where),
+                               _offsets(d, "design_edge_depth_mm", where, MAX_DEPTH_MM),
+                               _offsets(d, "design_edge_depth_sd_mm", where, MAX_DEPTH_MM))
 
 
-def _offsets(d: dict, key: str, where: str) -> tuple:
-    """An optional ``{shape: mm}`` object (a calibrated offset is a fraction of a mm)."""
+def _offsets(d: dict, key: str, where: str, bound_mm: float = 1.0) -> tuple:
+    """An optional ``{shape: mm}`` object (a calibrated offset is a fraction of a mm, a depth
+    a few tenths)."""
     o = d.get(key, {})
     if not isinstance(o, dict) or not all(
             k in ("round", "chamfer") and isinstance(v, (int, float))
-            and not isinstance(v, bool) and math.isfinite(v) and abs(v) <= 1.0
+            and not isinstance(v, bool) and math.isfinite(v) and abs(v) <= bound_mm
             for k, v in o.items()):
         raise EdgeLookFileError(f"{where}: '{key}' must map 'round' / 'chamfer' to finite "
-                                "offsets within +-1 mm")
+                                f"values within +-{bound_mm:g} mm")
     return tuple((k, float(v)) for k, v in sorted(o.items()))
 
 

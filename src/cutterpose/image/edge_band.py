@@ -60,7 +60,7 @@ from ..geometry.holder import Holder
 from . import edge_model as em
 
 __all__ = ["BandProfiles", "BandFit", "BandLooks", "sample_band", "fit_band", "band_looks",
-           "profile_costs", "model_grid_px", "CAL_RADII_MM"]
+           "profile_costs", "model_grid_px", "view_lean", "CAL_RADII_MM"]
 
 #: the radii the coarse scan tries (mm) and the fine step
 COARSE_RADII_MM = np.array([0.0, 0.25, 0.5, 0.75, 1.0, 1.25, 1.5, 2.0, 2.5, 3.0, 3.5, 4.0, 4.5,
@@ -102,9 +102,12 @@ class BandLooks:
     fitted for the error budget's edge-model term, each weighted by its relative likelihood as
     the generic plausible looks are. ``offset_mm``: per shape, the design-edge offset the look
     still leaves at the known poses (mm outwards in the face plane), added to every fitted
-    shift of that shape (times the segment's px per mm); ``offset_scatter_mm``: per shape,
-    how far one image's design edge may still be off (1 sigma, mm: the offset's scatter over
-    the reference images), the budget's edge-model term.
+    shift of that shape (times the segment's px per mm); ``offset_depth_mm``: per shape, the
+    depth ``d`` below the face at which the located design edge behaves (mm): a point ``d``
+    below the face images like the face point ``d tan(theta)`` outwards (``tan(theta)`` the
+    segment's :func:`view_lean`), so the offset is ``offset_mm - d tan(theta)``;
+    ``offset_scatter_mm``: per shape, how far one image's design edge may still be off (1 sigma,
+    mm: the offset's scatter over the reference images), the budget's edge-model term.
     """
 
     look: em.EdgeLook
@@ -112,13 +115,22 @@ class BandLooks:
     blurs_px: tuple[float, ...] = BLURS_PX
     offset_mm: tuple[tuple[str, float], ...] = ()
     offset_scatter_mm: tuple[tuple[str, float], ...] = ()
+    offset_depth_mm: tuple[tuple[str, float], ...] = ()
+    #: per shape, the depth's 1-sigma (mm; the budget's edge-model term)
+    offset_depth_sd_mm: tuple[tuple[str, float], ...] = ()
 
     def for_shape(self, shape: str) -> em.EdgeLook:
         return replace(self.look, shape=shape, profile_sigma_px=0.0)
 
-    def offset(self, shape: str) -> float:
-        """The calibrated design-edge offset of ``shape`` (mm; 0 when not calibrated)."""
-        return dict(self.offset_mm).get(shape, 0.0)
+    def offset(self, shape: str, lean=0.0):
+        """The calibrated design-edge offset of ``shape`` (mm outwards; 0 when not calibrated)
+        at segments of view lean ``lean`` (:func:`view_lean`; scalar or (S,))."""
+        return (dict(self.offset_mm).get(shape, 0.0)
+                - dict(self.offset_depth_mm).get(shape, 0.0) * np.asarray(lean, float))
+
+    @property
+    def calibrated_offset(self) -> bool:
+        return bool(self.offset_mm or self.offset_depth_mm)
 
 
 def band_looks(shapes=("round", "chamfer")) -> list[em.EdgeLook]:
@@ -359,6 +371,22 @@ def _along_segments(bl: np.ndarray, edge: np.ndarray, frac: np.ndarray) -> np.nd
     return (1 - f) * bl[edge, 1] + f * bl[(edge + 1) % n, 0]
 
 
+def view_lean(view: em.EdgeView, edge: np.ndarray, frac: np.ndarray) -> np.ndarray:
+    """(S,) ``tan(theta)`` of each segment: the lean of its direction to the camera across the
+    edge, outwards positive (``v_o / -v_z``, linear between the edge's ends as the segments'
+    profiles are, :func:`_along_segments`).
+
+    Convention:
+        Holder frame ``+Z`` away from the camera (``v_z < 0`` for a face the camera sees);
+        ``o`` the edge's outward normal in the face plane. A point ``d`` below the face on the
+        design edge images like the face point ``d tan(theta)`` outwards of it.
+    """
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = np.where(view.v_z < 0, view.v_o / -view.v_z, 0.0)              # (N, 2)
+    n = t.shape[0]
+    return (1 - frac) * t[edge, 1] + frac * t[(edge + 1) % n, 0]
+
+
 def _scan(Y, models, m0, w_idx, shifts_idx):
     """Cost of ``Y ~ a + b model(w - shift)`` for every segment, radius and shift.
 
@@ -557,7 +585,7 @@ def fit_band(bp: BandProfiles, camera: Camera, holder: Holder, R_cam_holder, t_c
         for lf in [previous.best] + previous.plausible:
             c = _fit_looks(bp, bank, [lf.look], shift_range_px=2.0)[0]
             out.append(_fit_looks(bp, bank, [lf.look], c)[0])
-        return _offset(BandFit(out[0], out[1:], bp), looks)
+        return _offset(BandFit(out[0], out[1:], bp), looks, bank.view)
     # the look is chosen on every other segment (with 40 or more): the coarse scans of all
     # looks are the fit's main cost, and a shared look needs no more
     sub = _subset(bp, np.arange(0, len(bp.edge), 2)) if len(bp.edge) >= 40 else bp
@@ -595,22 +623,25 @@ def fit_band(bp: BandProfiles, camera: Camera, holder: Holder, R_cam_holder, t_c
                 plausible.append(_fit_looks(bp, bank, [lk], _fit_looks(bp, bank, [lk])[0])[0])
             else:
                 plausible.append(replace(best, look=lk))
-    return _offset(BandFit(best, plausible, bp), looks)
+    return _offset(BandFit(best, plausible, bp), looks, bank.view)
 
 
-def _offset(fit: BandFit, looks: BandLooks | None) -> BandFit:
-    """The calibrated design-edge offsets (:attr:`BandLooks.offset_mm`) added to every look's
-    shifts (none without a calibration)."""
-    if looks is None or not looks.offset_mm:
+def _offset(fit: BandFit, looks: BandLooks | None, view: em.EdgeView) -> BandFit:
+    """The calibrated design-edge offsets (:meth:`BandLooks.offset`, at each segment's
+    :func:`view_lean` in ``view``) added to every look's shifts (none without a
+    calibration)."""
+    if looks is None or not looks.calibrated_offset:
         return fit
-    px = fit.profiles.px_per_mm
+    bp = fit.profiles
+    px = bp.px_per_mm
+    lean = view_lean(view, bp.edge, bp.frac)
 
     def moved(lf: LookFit) -> LookFit:
         # a first pass's plausible look may stand on the coarse scan of a subset of the
         # segments (only its look is used): left as it is
         if len(lf.shift_px) != len(px):
             return lf
-        return lf.moved(looks.offset(lf.look.shape), px)
+        return lf.moved(looks.offset(lf.look.shape, lean), px)
 
     fit.best = moved(fit.best)
     fit.plausible = [moved(lf) for lf in fit.plausible]

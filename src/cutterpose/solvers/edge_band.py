@@ -21,7 +21,9 @@ The error budget (:mod:`cutterpose.budget`) gets three parts:
 * ``edge model``: the poses of the other plausible looks (shape and photometry the profile fit
   cannot rule out), mean of their outer products about the chosen pose; with a look calibrated
   in the cell (:mod:`cutterpose.calibration.edge_look`) also the pose change for a uniform
-  shift by the design-edge offsets' scatter measured over its reference images;
+  shift by the design-edge offsets' scatter measured over its reference images, and for the
+  calibrated depth of the design edge moved by its 1-sigma (a shift of each segment by it
+  times the segment's view lean);
 * ``model floor``: the pose change for a uniform outward shift of every design point by
   :data:`SHIFT_FLOOR_MM` (the profile model's systematic error that no alternative look
   shows: a uniform shift is what the pose cannot tell from depth).
@@ -48,7 +50,8 @@ from ..errors import CutterposeError, InputError
 from ..geometry.camera import Camera
 from ..geometry.holder import Holder
 from ..geometry.pose import Pose, rotation_from_euler_deg
-from ..image.edge_band import BandFit, BandLooks, fit_band, sample_band
+from ..image import edge_model as em
+from ..image.edge_band import BandFit, BandLooks, fit_band, sample_band, view_lean
 from .estimate import PoseEstimate
 
 __all__ = ["BandPose", "as_band_looks", "design_pose", "fit_pose_design_points", "measure_band",
@@ -243,6 +246,14 @@ def measure_band(image, camera: Camera, holder: Holder, start: PoseEstimate,
         if sc:
             d_s = uniform(sc)
             cov_model = cov_model + np.outer(d_s, d_s)
+        # and the calibrated depth's own uncertainty, through each segment's view lean
+        sd_d = dict(looks.offset_depth_sd_mm).get(fit.best.look.shape)
+        if sd_d:
+            lean = view_lean(em.edge_views(rotation_from_euler_deg(*dof[:3]), dof[3:], K,
+                                           holder), bp.edge, bp.frac)
+            d_d = design_pose(fit, fit.best.moved(-sd_d * lean, bp.px_per_mm), K, dof,
+                              valid) - dof
+            cov_model = cov_model + np.outer(d_d, d_d)
     # a uniform outward shift of the design edge by the model floor
     d_u = uniform(SHIFT_FLOOR_MM)
     parts = {"noise": cov_noise, "edge model": cov_model, "model floor": np.outer(d_u, d_u)}
