@@ -144,3 +144,23 @@ def test_rotation_closed_form_is_zyx():
     ref = Rotation.from_euler("ZYX", a[:, ::-1], degrees=True).as_matrix()
     np.testing.assert_allclose(R, ref, atol=1e-14)
     assert rotation_from_euler_deg(1.0, 2.0, 3.0).shape == (3, 3)
+
+
+def test_pose_jacobian_is_the_residuals_derivative():
+    """The point-to-line fit's closed-form Jacobian equals central differences of its residuals
+    (fails on a wrong rotation generator or projection derivative)."""
+    from cutterpose.solvers.edge_band import _jacobian, _residuals
+
+    rng = np.random.default_rng(4)
+    K = default_camera("table1").K
+    X = np.column_stack([rng.uniform(-90, 90, (40, 2)), np.zeros(40)])
+    n = rng.normal(size=(40, 2))
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    p = rng.uniform(0, 3000, (40, 2))
+    for dof in ([7.0, -5.0, 12.0, 20.0, -10.0, 600.0], [-9.0, 8.0, -3.0, -15.0, 12.0, 640.0]):
+        dof = np.array(dof)
+        h = 1e-6
+        num = np.column_stack([(_residuals(dof + h * e, X, p, n, K)
+                                - _residuals(dof - h * e, X, p, n, K)) / (2 * h)
+                               for e in np.eye(6)])
+        assert np.abs(_jacobian(dof, X, n, K) - num).max() < 1e-5 * np.abs(num).max()

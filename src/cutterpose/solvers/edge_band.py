@@ -117,6 +117,30 @@ def _residuals(dof, X, p, n, K):
     return np.sum((q - p) * n, axis=1)
 
 
+def _jacobian(dof, X, n, K) -> np.ndarray:
+    """(S, 6) derivative of :func:`_residuals` by the DOFs, in closed form: with
+    ``R = Rz(gamma) Ry(beta) Rx(alpha)``, ``dR/dalpha = R [e_x]x``, ``dR/dbeta =
+    R [Rx^T e_y]x``, ``dR/dgamma = [e_z]x R`` (per radian), and the projection's
+    ``d(x/z, y/z)/dXc``."""
+    R = rotation_from_euler_deg(*dof[:3])
+    RX = X @ R.T
+    Xc = RX + dof[3:]
+    x, y, z = Xc.T
+    D = np.zeros((len(X), 2, 3))
+    D[:, 0, 0] = D[:, 1, 1] = 1.0 / z
+    D[:, 0, 2], D[:, 1, 2] = -x / z ** 2, -y / z ** 2
+    g = np.einsum("si,ij,sjk->sk", n, K[:2, :2], D)                    # (S, 3) dr / dXc
+    a = math.radians(dof[0])
+    ax_b = np.array([0.0, math.cos(a), -math.sin(a)])                   # Rx^T e_y
+    k = math.pi / 180.0
+    J = np.empty((len(X), 6))
+    J[:, 0] = k * np.einsum("sk,sk->s", g, np.cross([1.0, 0.0, 0.0], X) @ R.T)
+    J[:, 1] = k * np.einsum("sk,sk->s", g, np.cross(ax_b, X) @ R.T)
+    J[:, 2] = k * np.einsum("sk,sk->s", g, np.cross([0.0, 0.0, 1.0], RX))
+    J[:, 3:] = g
+    return J
+
+
 def fit_pose_design_points(points_ideal_px, normals, points_holder_mm, K, dof0,
                            sd_px=None, f_scale: float = ROBUST_SCALE):
     """Robust point-to-line pose (module doc).
@@ -142,7 +166,10 @@ def fit_pose_design_points(points_ideal_px, normals, points_holder_mm, K, dof0,
     def fun(x):
         return _residuals(x, X, p, n, K) / sd
 
-    sol = least_squares(fun, dof0, loss="soft_l1", f_scale=f_scale,
+    def jac(x):
+        return _jacobian(x, X, n, K) / sd[:, None]
+
+    sol = least_squares(fun, dof0, jac=jac, loss="soft_l1", f_scale=f_scale,
                         x_scale=np.array([0.01, 0.01, 0.01, 0.1, 0.1, 0.5]), method="trf")
     z = sol.fun
     w = 1.0 / np.sqrt(1.0 + (z / f_scale) ** 2)
