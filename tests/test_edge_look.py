@@ -216,6 +216,12 @@ def test_edge_look_changes_the_fitted_look(new_holder):
     assert (b1.fit.best.look.specular, b1.fit.best.look.shininess) == (1.3, 33.0)
     parts = calib.quality.budget.to_dict()["parts"]
     assert parts["edge model"]["position_3sigma_mm"] > 0.01
+    # the measured scatter replaces the generic floor (a calibration without offsets keeps it)
+    assert "model floor" not in parts
+    assert "model floor" in plain.quality.budget.to_dict()["parts"]
+    bare = measure(img, CAM, HOLDER, method="dm+b", limits=limits,
+                   edge_look=replace(cal, offset_mm=(), offset_scatter_mm=()))
+    assert "model floor" in bare.quality.budget.to_dict()["parts"]
     # the variants round the look (band_looks(variant_axes=...)) enter the edge-model term
     feats = detect_features(img, CAM, HOLDER, FeatureParams.for_camera(CAM))
     start = plain.estimate.info["start"]

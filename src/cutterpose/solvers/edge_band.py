@@ -26,7 +26,9 @@ The error budget (:mod:`cutterpose.budget`) gets three parts:
   times the segment's view lean);
 * ``model floor``: the pose change for a uniform outward shift of every design point by
   :data:`SHIFT_FLOOR_MM` (the profile model's systematic error that no alternative look
-  shows: a uniform shift is what the pose cannot tell from depth).
+  shows: a uniform shift is what the pose cannot tell from depth). Not with a calibrated look
+  whose offsets were measured at known poses: their scatter (in ``edge model``) is that error
+  measured, where the floor guesses it (counting both would count it twice).
 
 Convention:
     Pose DOFs of :mod:`cutterpose.geometry.pose` (alpha, beta, gamma [deg], X, Y, Z [mm],
@@ -266,10 +268,10 @@ def measure_band(image, camera: Camera, holder: Holder, start: PoseEstimate,
         """The pose change for a uniform outward shift of every design point (mm)."""
         return design_pose(fit, fit.best.moved(shift_mm, bp.px_per_mm), K, dof, valid) - dof
 
+    sc = dict(looks.offset_scatter_mm).get(fit.best.look.shape) if looks is not None else None
     if looks is not None:
         # a calibrated look: the scatter of the design-edge offset over the reference images
         # (measured at their known poses) is this image's remaining look error
-        sc = dict(looks.offset_scatter_mm).get(fit.best.look.shape)
         if sc:
             d_s = uniform(sc)
             cov_model = cov_model + np.outer(d_s, d_s)
@@ -281,9 +283,12 @@ def measure_band(image, camera: Camera, holder: Holder, start: PoseEstimate,
             d_d = design_pose(fit, fit.best.moved(-sd_d * lean, bp.px_per_mm), K, dof,
                               valid) - dof
             cov_model = cov_model + np.outer(d_d, d_d)
-    # a uniform outward shift of the design edge by the model floor
-    d_u = uniform(SHIFT_FLOOR_MM)
-    parts = {"noise": cov_noise, "edge model": cov_model, "model floor": np.outer(d_u, d_u)}
+    parts = {"noise": cov_noise, "edge model": cov_model}
+    if not sc:
+        # a uniform outward shift of the design edge by the model floor: what no look shows;
+        # a calibration that measured the offsets' scatter at known poses replaces the guess
+        d_u = uniform(SHIFT_FLOOR_MM)
+        parts["model floor"] = np.outer(d_u, d_u)
     res = np.full(len(valid), np.nan)
     res[valid] = r
     wt = np.zeros(len(valid))
