@@ -140,6 +140,12 @@ def test_offset_calibration_recovers_a_known_depth():
     assert np.all(after[3:5] < 0.3 * before[3:5]), (before, after)   # X, Y
     back = load_edge_look_dict(cal.to_dict())
     assert back.offset_depth_mm == cal.offset_depth_mm
+    z = [p.t_mm[2] for p in poses]
+    assert back.distance_range_mm == pytest.approx((min(z), max(z)))
+    looks = back.band_looks()
+    assert looks.covers(min(z)) and looks.covers(max(z) * 1.04)
+    assert not looks.covers(max(z) * 1.1) and not looks.covers(min(z) * 0.9)
+    assert not replace(looks, distance_range_mm=None).covers(min(z))
 
 
 def test_offset_of_a_calibrated_depth_follows_the_lean():
@@ -192,7 +198,8 @@ def new_holder(tmp_path_factory):
     cal = replace(_calibration(specular=1.3, shininess=33.0, wall_albedo=0.2,
                                pocket_level=0.1),
                   offset_mm=(("chamfer", 0.02), ("round", -0.01)),
-                  offset_scatter_mm=(("chamfer", 0.03), ("round", 0.03)))
+                  offset_scatter_mm=(("chamfer", 0.03), ("round", 0.03)),
+                  distance_range_mm=(590.0, 630.0))
     save_edge_look(cal, d / "look.json")
     return pose, img, cal, d
 
@@ -222,6 +229,10 @@ def test_edge_look_changes_the_fitted_look(new_holder):
     bare = measure(img, CAM, HOLDER, method="dm+b", limits=limits,
                    edge_look=replace(cal, offset_mm=(), offset_scatter_mm=()))
     assert "model floor" in bare.quality.budget.to_dict()["parts"]
+    # offsets measured at other distances do not vouch for this one (the pose is at 614 mm)
+    far = measure(img, CAM, HOLDER, method="dm+b", limits=limits,
+                  edge_look=replace(cal, distance_range_mm=(800.0, 900.0)))
+    assert "model floor" in far.quality.budget.to_dict()["parts"]
     # the variants round the look (band_looks(variant_axes=...)) enter the edge-model term
     feats = detect_features(img, CAM, HOLDER, FeatureParams.for_camera(CAM))
     start = plain.estimate.info["start"]
@@ -287,6 +298,8 @@ def _good_dict():
     (lambda d: d.update(design_edge_offset_mm={"round": 3.0}), "design_edge_offset_mm"),
     (lambda d: d.update(design_edge_depth_mm={"chamfer": 7.0}), "design_edge_depth_mm"),
     (lambda d: d.update(design_edge_depth_mm={"chamfer": "deep"}), "design_edge_depth_mm"),
+    (lambda d: d.update(distance_range_mm=[700.0, 600.0]), "distance_range_mm"),
+    (lambda d: d.update(distance_range_mm="near"), "distance_range_mm"),
 ])
 def test_malformed_look_file_is_a_typed_error(tmp_path, change, words):
     d = _good_dict()

@@ -38,14 +38,17 @@ continuous parameters to that:
   look of this family puts the design edge can still be off by a few hundredths of a mm (on the
   path-traced ``new`` set: chamfers 0.04 mm, fillets 0.005 mm). At each known pose ``dm+b``'s
   fit with the calibrated look gives the design-edge points, the pose is fitted to them from the
-  true pose, and per shape the uniform outward offset that zeroes the Z error in least squares
-  is taken (a uniform offset is what the pose cannot tell from depth). ``dm+b`` adds it to every
-  fitted shift of that shape. The offsets' scatter over the reference images is how far one
-  image's design edge may still be off: the budget's edge-model term with a calibration (the
-  pose change for a uniform shift by it). It is measured, where the variants only propagate
-  the parameters' uncertainty through a model that does not fit: on three worn images the
-  variants (worn calibration) made the edge-model term 0.66-0.78 mm at 3 sigma, the measured
-  scatter 0.39-0.52 mm.
+  true pose, and per shape a uniform outward offset and the depth below the face at which the
+  located edge behaves (a parallax of ``depth x tan(theta)``, ``theta`` the view's lean across
+  the edge: a tilt error growing with the tilt; kept where it predicts left-out images better)
+  are fitted to the pose errors. ``dm+b`` adds the offset to every fitted shift of that shape.
+  The offsets' scatter over the reference images is how far one image's design edge may still
+  be off: the budget's edge-model term with a calibration (the pose change for a uniform shift
+  by it), with the depth's 1-sigma; there it replaces the generic model floor, within the depths
+  of the reference poses only (``distance_range_mm``). It is measured, where the variants only
+  propagate the parameters' uncertainty through a model that does not fit: on three worn images
+  the variants (worn calibration) made the edge-model term 0.66-0.78 mm at 3 sigma, the
+  measured scatter 0.39-0.52 mm.
 * **Check** (:func:`shift_at_truth`): at the known poses, ``dm+b``'s profile fit with the shift
   free, for the generic looks and the calibrated one: the mean design-edge shift per image is
   the bias the look leaves.
@@ -307,6 +310,8 @@ class EdgeLookCalibration:
     #: offset is ``delta - depth tan(theta)``, :func:`calibrate_offsets`), and its 1-sigma
     offset_depth_mm: tuple[tuple[str, float], ...] = ()
     offset_depth_sd_mm: tuple[tuple[str, float], ...] = ()
+    #: the depths (mm, Z of the holder) of the reference poses the offsets were measured at
+    distance_range_mm: tuple[float, float] | None = None
 
     def sd(self, per_image: bool = False) -> dict:
         """1-sigma of each fitted parameter in its natural unit (delta method through the log
@@ -342,7 +347,8 @@ class EdgeLookCalibration:
                         for k, v in self.offset_scatter_mm)
         return BandLooks(self.look, self.variants(variant_axes) if variant_axes else (),
                          tuple(self.blurs_px), tuple(self.offset_mm), scatter,
-                         tuple(self.offset_depth_mm), tuple(self.offset_depth_sd_mm))
+                         tuple(self.offset_depth_mm), tuple(self.offset_depth_sd_mm),
+                         self.distance_range_mm)
 
     def to_dict(self) -> dict:
         lk = self.look
@@ -361,6 +367,8 @@ class EdgeLookCalibration:
                 "design_edge_offset_scatter_mm": dict(self.offset_scatter_mm),
                 "design_edge_depth_mm": dict(self.offset_depth_mm),
                 "design_edge_depth_sd_mm": dict(self.offset_depth_sd_mm),
+                "distance_range_mm": (list(self.distance_range_mm)
+                                      if self.distance_range_mm else None),
                 "report": self.report}
 
 
@@ -539,6 +547,7 @@ def calibrate_offsets(refs: list[ReferenceImage], cal: EdgeLookCalibration,
     """
     looks = replace(cal.band_looks(), offset_mm=(), offset_depth_mm=())
     per: dict = {}
+    z = [float(r.t_cam_holder_mm[2]) for r in refs]
     for ref in refs:
         f = fit_band(ref.profiles, ref.camera, ref.holder, ref.R_cam_holder,
                      ref.t_cam_holder_mm, shapes, looks=looks)
@@ -590,7 +599,8 @@ def calibrate_offsets(refs: list[ReferenceImage], cal: EdgeLookCalibration,
     report["design_edge_offset"] = rep
     return replace(cal, offset_mm=tuple(off), offset_sd_mm=tuple(sd_off),
                    offset_scatter_mm=tuple(scatter), offset_depth_mm=tuple(depth),
-                   offset_depth_sd_mm=tuple(sd_depth), report=report)
+                   offset_depth_sd_mm=tuple(sd_depth), report=report,
+                   distance_range_mm=(float(min(z)), float(max(z))) if off else None)
 
 
 def _offset_weights() -> np.ndarray:
@@ -723,7 +733,21 @@ def edge_look_from_dict(d, where: str = "edge look") -> EdgeLookCalibration:
                                _offsets(d, "design_edge_offset_sd_mm", where),
                                _offsets(d, "design_edge_offset_scatter_mm", where),
                                _offsets(d, "design_edge_depth_mm", where, MAX_DEPTH_MM),
-                               _offsets(d, "design_edge_depth_sd_mm", where, MAX_DEPTH_MM))
+                               _offsets(d, "design_edge_depth_sd_mm", where, MAX_DEPTH_MM),
+                               _distance_range(d, where))
+
+
+def _distance_range(d: dict, where: str) -> tuple[float, float] | None:
+    """The optional ``distance_range_mm``: ``[near, far]``, positive and ordered."""
+    v = d.get("distance_range_mm")
+    if v is None:
+        return None
+    if (not isinstance(v, list) or len(v) != 2
+            or not all(isinstance(x, (int, float)) and not isinstance(x, bool)
+                       and math.isfinite(x) and x > 0 for x in v) or v[0] > v[1]):
+        raise EdgeLookFileError(f"{where}: 'distance_range_mm' must be [near, far] in mm, "
+                                f"0 < near <= far, got {v!r}")
+    return float(v[0]), float(v[1])
 
 
 def _offsets(d: dict, key: str, where: str, bound_mm: float = 1.0) -> tuple:

@@ -91,6 +91,10 @@ CAL_RADII_MM = np.r_[np.arange(0.0, 2.0, FINE_STEP_MM), np.arange(2.0, 6.5 + 1e-
                                                                     2 * FINE_STEP_MM)]
 
 
+#: how far beyond its reference poses' depths a calibration's measured offsets are trusted
+RANGE_MARGIN = 0.05
+
+
 @dataclass(frozen=True)
 class BandLooks:
     """Photometric candidates calibrated in the cell (:mod:`cutterpose.calibration.edge_look`)
@@ -118,6 +122,19 @@ class BandLooks:
     offset_depth_mm: tuple[tuple[str, float], ...] = ()
     #: per shape, the depth's 1-sigma (mm; the budget's edge-model term)
     offset_depth_sd_mm: tuple[tuple[str, float], ...] = ()
+    #: the depths (Z of the holder, mm) of the reference poses the offsets were measured at
+    #: (None: not known); see :meth:`covers`
+    distance_range_mm: tuple[float, float] | None = None
+
+    def covers(self, z_mm: float) -> bool:
+        """Whether a pose at depth ``z_mm`` lies where the offsets were measured (the reference
+        poses' range widened by :data:`RANGE_MARGIN`): the blur, the pixels per mm and the view
+        change with the distance, and an offset measured at 600 mm does not vouch for 900 mm
+        (on an approach from 900 mm the calibrated Z error drifts by ~0.4 mm)."""
+        if self.distance_range_mm is None:
+            return False
+        lo, hi = self.distance_range_mm
+        return lo * (1 - RANGE_MARGIN) <= z_mm <= hi * (1 + RANGE_MARGIN)
 
     def for_shape(self, shape: str) -> em.EdgeLook:
         return replace(self.look, shape=shape, profile_sigma_px=0.0)

@@ -27,8 +27,9 @@ The error budget (:mod:`cutterpose.budget`) gets three parts:
 * ``model floor``: the pose change for a uniform outward shift of every design point by
   :data:`SHIFT_FLOOR_MM` (the profile model's systematic error that no alternative look
   shows: a uniform shift is what the pose cannot tell from depth). Not with a calibrated look
-  whose offsets were measured at known poses: their scatter (in ``edge model``) is that error
-  measured, where the floor guesses it (counting both would count it twice).
+  whose offsets were measured at known poses at this distance (``BandLooks.covers``): their
+  scatter (in ``edge model``) is that error measured, where the floor guesses it (counting both
+  would count it twice); farther or nearer than the reference poses the floor stays.
 
 Convention:
     Pose DOFs of :mod:`cutterpose.geometry.pose` (alpha, beta, gamma [deg], X, Y, Z [mm],
@@ -284,9 +285,10 @@ def measure_band(image, camera: Camera, holder: Holder, start: PoseEstimate,
                               valid) - dof
             cov_model = cov_model + np.outer(d_d, d_d)
     parts = {"noise": cov_noise, "edge model": cov_model}
-    if not sc:
+    if not (sc and looks.covers(float(dof[5]))):
         # a uniform outward shift of the design edge by the model floor: what no look shows;
-        # a calibration that measured the offsets' scatter at known poses replaces the guess
+        # a calibration that measured the offsets' scatter at known poses at this distance
+        # replaces the guess
         d_u = uniform(SHIFT_FLOOR_MM)
         parts["model floor"] = np.outer(d_u, d_u)
     res = np.full(len(valid), np.nan)
