@@ -233,6 +233,10 @@ def test_edge_look_changes_the_fitted_look(new_holder):
     far = measure(img, CAM, HOLDER, method="dm+b", limits=limits,
                   edge_look=replace(cal, distance_range_mm=(800.0, 900.0)))
     assert "model floor" in far.quality.budget.to_dict()["parts"]
+    # and the JSON says why
+    assert calib.estimate.info["band"].to_dict()["look"]["calibration_covers_distance"] is True
+    assert far.estimate.info["band"].to_dict()["look"]["calibration_covers_distance"] is False
+    assert plain.estimate.info["band"].to_dict()["look"]["calibration_covers_distance"] is None
     # the variants round the look (band_looks(variant_axes=...)) enter the edge-model term
     feats = detect_features(img, CAM, HOLDER, FeatureParams.for_camera(CAM))
     start = plain.estimate.info["start"]

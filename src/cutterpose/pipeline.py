@@ -197,6 +197,9 @@ class Measurement:
             lines.append(f"edge break: {d['shape']}, radius {d['radius_median_mm']:.2f} mm "
                          f"(median of {d['segments_valid']} segments, {d['segments_used']} "
                          "used for the pose)")
+            if band.calibration_covers is False:
+                lines.append("edge look: calibrated in the cell at other distances than this "
+                             "one: the budget keeps the generic model floor")
         return lines
 
     def to_dict(self) -> dict:

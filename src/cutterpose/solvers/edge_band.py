@@ -91,6 +91,9 @@ class BandPose:
     chi: float                    # root of the weighted chi-square per degree of freedom
     passes: int
     calibrated: bool = False      # the look was calibrated in the cell (BandLooks)
+    #: the calibration's measured offset scatter stands for the model floor here (its
+    #: reference poses cover this distance); None without a calibration
+    calibration_covers: bool | None = None
 
     @property
     def radius_mm(self) -> float:
@@ -107,7 +110,9 @@ class BandPose:
                 "segments_used": int(np.count_nonzero(self.weights > 0.5)),
                 "segments_valid": int(v.sum()), "residual_chi": round(self.chi, 3),
                 "plausible_looks": len(self.fit.plausible), "passes": self.passes,
-                "look": {"calibrated": self.calibrated, "specular": b.look.specular,
+                "look": {"calibrated": self.calibrated,
+                         "calibration_covers_distance": self.calibration_covers,
+                         "specular": b.look.specular,
                          "shininess": b.look.shininess, "face_albedo": b.look.face_albedo,
                          "wall_albedo": b.look.wall_albedo,
                          "pocket_level": b.look.pocket_level}}
@@ -285,7 +290,8 @@ def measure_band(image, camera: Camera, holder: Holder, start: PoseEstimate,
                               valid) - dof
             cov_model = cov_model + np.outer(d_d, d_d)
     parts = {"noise": cov_noise, "edge model": cov_model}
-    if not (sc and looks.covers(float(dof[5]))):
+    covers = None if looks is None else bool(sc and looks.covers(float(dof[5])))
+    if not covers:
         # a uniform outward shift of the design edge by the model floor: what no look shows;
         # a calibration that measured the offsets' scatter at known poses at this distance
         # replaces the guess
@@ -295,7 +301,8 @@ def measure_band(image, camera: Camera, holder: Holder, start: PoseEstimate,
     res[valid] = r
     wt = np.zeros(len(valid))
     wt[valid] = w
-    band = BandPose(dof, parts, fit, res, wt, s, passes, calibrated=looks is not None)
+    band = BandPose(dof, parts, fit, res, wt, s, passes, calibrated=looks is not None,
+                    calibration_covers=covers)
     R = rotation_from_euler_deg(*dof[:3])
     inl = w > 0.5
     rms = float(np.sqrt(np.mean(r[inl] ** 2))) if inl.any() else math.nan
