@@ -140,6 +140,9 @@ def test_offset_calibration_recovers_a_known_depth():
     assert np.all(after[3:5] < 0.3 * before[3:5]), (before, after)   # X, Y
     back = load_edge_look_dict(cal.to_dict())
     assert back.offset_depth_mm == cal.offset_depth_mm
+    assert back.offset_cov == cal.offset_cov
+    c = np.array(dict(cal.offset_cov)["round"])
+    assert c[1, 1] > 0 and np.isclose(np.sqrt(c[1, 1]), dict(cal.offset_depth_sd_mm)["round"])
     z = [p.t_mm[2] for p in poses]
     assert back.distance_range_mm == pytest.approx((min(z), max(z)))
     looks = back.band_looks()
@@ -253,7 +256,8 @@ def test_edge_look_changes_the_fitted_look(new_holder):
 
 def test_calibrated_depth_moves_the_pose_and_enters_the_budget(new_holder):
     """A calibrated depth of the design edge moves each segment by depth x lean (the pose with
-    it differs from the pose without), and its 1-sigma widens the budget's edge-model term."""
+    it differs from the pose without), and its uncertainty (the (offset, depth) covariance)
+    widens the budget's edge-model term."""
     from cutterpose.image import FeatureParams, detect_features
     from cutterpose.solvers.edge_band import refine_features
 
@@ -263,13 +267,25 @@ def test_calibrated_depth_moves_the_pose_and_enters_the_budget(new_holder):
     base = cal.band_looks()
     shapes = ("round", "chamfer")
     deep = replace(base, offset_depth_mm=tuple((k, 0.4) for k in shapes))
-    unsure = replace(deep, offset_depth_sd_mm=tuple((k, 0.2) for k in shapes))
+    unsure = replace(deep, offset_cov=tuple((k, ((0.0, 0.0), (0.0, 0.04))) for k in shapes))
     e0, e1, e2 = (refine_features(start, feats, CAM, HOLDER, edge_look=lk)
                   for lk in (base, deep, unsure))
     assert e0 and e1 and e2
     assert np.linalg.norm(e1.t_cam_holder_mm - e0.t_cam_holder_mm) > 0.02
     m1, m2 = (np.trace(e.info["band"].cov_parts["edge model"][3:, 3:]) for e in (e1, e2))
     assert m2 > m1 * 1.2, (m1, m2)
+    # the offset and the depth are propagated jointly: anti-correlated as a calibration finds
+    # them (the segments see the pocket edge from its inside, tan(theta) < 0, so a larger
+    # depth and a smaller offset move them alike), they widen the budget less than the same
+    # variances taken apart
+    a, b = 0.04, 0.2
+    apart = replace(deep, offset_cov=tuple((k, ((a * a, 0.0), (0.0, b * b))) for k in shapes))
+    joint = replace(deep, offset_cov=tuple((k, ((a * a, -a * b), (-a * b, b * b)))
+                                           for k in shapes))
+    m_apart, m_joint = (np.trace(refine_features(start, feats, CAM, HOLDER, edge_look=lk)
+                                 .info["band"].cov_parts["edge model"][3:, 3:])
+                        for lk in (apart, joint))
+    assert m_joint < 0.7 * m_apart, (m_joint, m_apart)
 
 
 def test_cli_edge_look_option(new_holder):
@@ -303,6 +319,10 @@ def _good_dict():
     (lambda d: d.update(design_edge_depth_mm={"chamfer": 7.0}), "design_edge_depth_mm"),
     (lambda d: d.update(design_edge_depth_mm={"chamfer": "deep"}), "design_edge_depth_mm"),
     (lambda d: d.update(distance_range_mm=[700.0, 600.0]), "distance_range_mm"),
+    (lambda d: d.update(design_edge_offset_depth_cov_mm2={"round": [[1.0, 2.0], [2.0, 1.0]]}),
+     "design_edge_offset_depth_cov_mm2"),
+    (lambda d: d.update(design_edge_offset_depth_cov_mm2={"round": [1.0]}),
+     "design_edge_offset_depth_cov_mm2"),
     (lambda d: d.update(distance_range_mm="near"), "distance_range_mm"),
 ])
 def test_malformed_look_file_is_a_typed_error(tmp_path, change, words):

@@ -310,6 +310,9 @@ class EdgeLookCalibration:
     #: offset is ``delta - depth tan(theta)``, :func:`calibrate_offsets`), and its 1-sigma
     offset_depth_mm: tuple[tuple[str, float], ...] = ()
     offset_depth_sd_mm: tuple[tuple[str, float], ...] = ()
+    #: per shape, the covariance (mm^2) of (offset, depth), cluster-robust over the images
+    #: (the depth's row and column 0 when it was not kept)
+    offset_cov: tuple[tuple[str, tuple[tuple[float, float], tuple[float, float]]], ...] = ()
     #: the depths (mm, Z of the holder) of the reference poses the offsets were measured at
     distance_range_mm: tuple[float, float] | None = None
 
@@ -343,11 +346,15 @@ class EdgeLookCalibration:
         offsets and their scatter; with ``variant_axes`` > 0 also :meth:`variants` for the
         budget (not by default: the offsets' measured scatter stands for what the look leaves,
         module doc)."""
-        scatter = tuple((k, float(np.hypot(v, dict(self.offset_sd_mm).get(k, 0.0))))
+        cov = dict(self.offset_cov)
+        # with the joint covariance the budget propagates the offset's own sd through it;
+        # a file without it (version 1) folds the sd into the scatter
+        scatter = tuple((k, float(v if k in cov else
+                                  np.hypot(v, dict(self.offset_sd_mm).get(k, 0.0))))
                         for k, v in self.offset_scatter_mm)
         return BandLooks(self.look, self.variants(variant_axes) if variant_axes else (),
                          tuple(self.blurs_px), tuple(self.offset_mm), scatter,
-                         tuple(self.offset_depth_mm), tuple(self.offset_depth_sd_mm),
+                         tuple(self.offset_depth_mm), tuple(self.offset_cov),
                          self.distance_range_mm)
 
     def to_dict(self) -> dict:
@@ -367,6 +374,8 @@ class EdgeLookCalibration:
                 "design_edge_offset_scatter_mm": dict(self.offset_scatter_mm),
                 "design_edge_depth_mm": dict(self.offset_depth_mm),
                 "design_edge_depth_sd_mm": dict(self.offset_depth_sd_mm),
+                "design_edge_offset_depth_cov_mm2": {k: [list(r) for r in v]
+                                                     for k, v in self.offset_cov},
                 "distance_range_mm": (list(self.distance_range_mm)
                                       if self.distance_range_mm else None),
                 "report": self.report}
@@ -561,7 +570,7 @@ def calibrate_offsets(refs: list[ReferenceImage], cal: EdgeLookCalibration,
             continue
         per.setdefault(f.best.look.shape, []).append(
             (e0, (e1 - e0) / OFFSET_STEP_MM, (e2 - e0) / DEPTH_STEP_MM))
-    off, sd_off, scatter, depth, sd_depth, rep = [], [], [], [], [], {}
+    off, sd_off, scatter, depth, sd_depth, cov_od, rep = [], [], [], [], [], [], {}
     for shape, rows in sorted(per.items()):
         n = len(rows)
         if n < MIN_OFFSET_IMAGES:
@@ -581,6 +590,9 @@ def calibrate_offsets(refs: list[ReferenceImage], cal: EdgeLookCalibration,
         off.append((shape, delta))
         sd_off.append((shape, float(math.sqrt(max(cov[0, 0], 0.0)))))
         scatter.append((shape, spread))
+        c2 = np.zeros((2, 2))
+        c2[:k, :k] = cov
+        cov_od.append((shape, tuple(tuple(float(v) for v in r) for r in c2)))
         if k > 1:
             depth.append((shape, d))
             sd_depth.append((shape, float(math.sqrt(max(cov[1, 1], 0.0)))))
@@ -599,7 +611,8 @@ def calibrate_offsets(refs: list[ReferenceImage], cal: EdgeLookCalibration,
     report["design_edge_offset"] = rep
     return replace(cal, offset_mm=tuple(off), offset_sd_mm=tuple(sd_off),
                    offset_scatter_mm=tuple(scatter), offset_depth_mm=tuple(depth),
-                   offset_depth_sd_mm=tuple(sd_depth), report=report,
+                   offset_depth_sd_mm=tuple(sd_depth), offset_cov=tuple(cov_od),
+                   report=report,
                    distance_range_mm=(float(min(z)), float(max(z))) if off else None)
 
 
@@ -734,7 +747,17 @@ def edge_look_from_dict(d, where: str = "edge look") -> EdgeLookCalibration:
                                _offsets(d, "design_edge_offset_scatter_mm", where),
                                _offsets(d, "design_edge_depth_mm", where, MAX_DEPTH_MM),
                                _offsets(d, "design_edge_depth_sd_mm", where, MAX_DEPTH_MM),
-                               _distance_range(d, where))
+                               _offset_covariances(d, where), _distance_range(d, where))
+
+
+def _offset_covariances(d: dict, where: str) -> tuple:
+    """The optional ``{shape: 2 x 2}`` covariance of (offset, depth) in mm^2."""
+    key = "design_edge_offset_depth_cov_mm2"
+    o = d.get(key, {})
+    if not isinstance(o, dict) or not all(k in ("round", "chamfer") for k in o):
+        raise EdgeLookFileError(f"{where}: '{key}' must map 'round' / 'chamfer' to 2 x 2 "
+                                "matrices")
+    return tuple((k, _matrix(o, k, 2, f"{where}: {key}")) for k in sorted(o))
 
 
 def _distance_range(d: dict, where: str) -> tuple[float, float] | None:

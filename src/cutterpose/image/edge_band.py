@@ -111,7 +111,8 @@ class BandLooks:
     below the face images like the face point ``d tan(theta)`` outwards (``tan(theta)`` the
     segment's :func:`view_lean`), so the offset is ``offset_mm - d tan(theta)``;
     ``offset_scatter_mm``: per shape, how far one image's design edge may still be off (1 sigma,
-    mm: the offset's scatter over the reference images), the budget's edge-model term.
+    mm: the offset's scatter over the reference images), the budget's edge-model term, with
+    ``offset_cov`` (the calibrated offset's and depth's own uncertainty).
     """
 
     look: em.EdgeLook
@@ -120,8 +121,10 @@ class BandLooks:
     offset_mm: tuple[tuple[str, float], ...] = ()
     offset_scatter_mm: tuple[tuple[str, float], ...] = ()
     offset_depth_mm: tuple[tuple[str, float], ...] = ()
-    #: per shape, the depth's 1-sigma (mm; the budget's edge-model term)
-    offset_depth_sd_mm: tuple[tuple[str, float], ...] = ()
+    #: per shape, the covariance (mm^2) of the calibrated (offset, depth): the budget's
+    #: edge-model term propagates it jointly (the two are correlated through the segments'
+    #: mean lean); without it ``offset_scatter_mm`` carries the offset's sd
+    offset_cov: tuple[tuple[str, tuple[tuple[float, float], tuple[float, float]]], ...] = ()
     #: the depths (Z of the holder, mm) of the reference poses the offsets were measured at
     #: (None: not known); see :meth:`covers`
     distance_range_mm: tuple[float, float] | None = None

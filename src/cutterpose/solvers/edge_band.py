@@ -22,8 +22,8 @@ The error budget (:mod:`cutterpose.budget`) gets three parts:
   cannot rule out), mean of their outer products about the chosen pose; with a look calibrated
   in the cell (:mod:`cutterpose.calibration.edge_look`) also the pose change for a uniform
   shift by the design-edge offsets' scatter measured over its reference images, and for the
-  calibrated depth of the design edge moved by its 1-sigma (a shift of each segment by it
-  times the segment's view lean);
+  calibrated offset and depth moved along the main axes of their joint covariance (each
+  segment by the offset minus the depth times its view lean);
 * ``model floor``: the pose change for a uniform outward shift of every design point by
   :data:`SHIFT_FLOOR_MM` (the profile model's systematic error that no alternative look
   shows: a uniform shift is what the pose cannot tell from depth). Not with a calibrated look
@@ -281,14 +281,20 @@ def measure_band(image, camera: Camera, holder: Holder, start: PoseEstimate,
         if sc:
             d_s = uniform(sc)
             cov_model = cov_model + np.outer(d_s, d_s)
-        # and the calibrated depth's own uncertainty, through each segment's view lean
-        sd_d = dict(looks.offset_depth_sd_mm).get(fit.best.look.shape)
-        if sd_d:
+        # and the calibrated offset's and depth's own uncertainty, jointly (they correlate
+        # through the segments' mean lean): the pose change along each main axis of their
+        # covariance, each segment moved by offset - depth x its view lean
+        cov_od = dict(looks.offset_cov).get(fit.best.look.shape)
+        if cov_od is not None:
             lean = view_lean(em.edge_views(rotation_from_euler_deg(*dof[:3]), dof[3:], K,
                                            holder), bp.edge, bp.frac)
-            d_d = design_pose(fit, fit.best.moved(-sd_d * lean, bp.px_per_mm), K, dof,
-                              valid) - dof
-            cov_model = cov_model + np.outer(d_d, d_d)
+            val, vec = np.linalg.eigh(np.asarray(cov_od, float))
+            for lam, u in zip(val, vec.T):
+                if lam > 0:
+                    o, d = math.sqrt(lam) * u
+                    d_c = design_pose(fit, fit.best.moved(o - d * lean, bp.px_per_mm), K, dof,
+                                      valid) - dof
+                    cov_model = cov_model + np.outer(d_c, d_c)
     parts = {"noise": cov_noise, "edge model": cov_model}
     covers = None if looks is None else bool(sc and looks.covers(float(dof[5])))
     if not covers:
