@@ -542,9 +542,9 @@ def calibrate_offsets(refs: list[ReferenceImage], cal: EdgeLookCalibration,
     outwards of the design edge: a parallax that changes sign across the view, i.e. a tilt
     error proportional to the tilt; on the path-traced ``new`` holders the look puts the edge
     ~0.45 mm down a chamfer and ~0.25 mm down a fillet). Both are fitted, per shape, to the
-    pose errors at the known poses, linear in them: ``min sum_i |W (e_i + g_i delta + h_i d)|^2`` with ``W`` the
-    rotations at a :data:`OFFSET_LEVER_MM` lever (mm) and the translations in mm (a uniform
-    offset is what the pose cannot tell from depth: it moves Z). The depth is kept only when it
+    pose errors at the known poses, linear in them: ``min sum_i |W (e_i + g_i delta + h_i
+    d)|^2`` with ``W`` the rotations at a :data:`OFFSET_LEVER_MM` lever (mm) and the
+    translations in mm (a uniform offset is what the pose cannot tell from depth: it moves Z). The depth is kept only when it
     predicts the images better in leave-one-out (the weighted pose error of each image under
     the fit to the others) and the shape has :data:`MIN_DEPTH_IMAGES` images or more;
     otherwise ``d = 0``. Their covariance is cluster-robust over the images. A shape seen on
