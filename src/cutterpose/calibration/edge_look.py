@@ -544,10 +544,10 @@ def calibrate_offsets(refs: list[ReferenceImage], cal: EdgeLookCalibration,
     ~0.45 mm down a chamfer and ~0.25 mm down a fillet). Both are fitted, per shape, to the
     pose errors at the known poses, linear in them: ``min sum_i |W (e_i + g_i delta + h_i
     d)|^2`` with ``W`` the rotations at a :data:`OFFSET_LEVER_MM` lever (mm) and the
-    translations in mm (a uniform offset is what the pose cannot tell from depth: it moves Z). The depth is kept only when it
-    predicts the images better in leave-one-out (the weighted pose error of each image under
-    the fit to the others) and the shape has :data:`MIN_DEPTH_IMAGES` images or more;
-    otherwise ``d = 0``. Their covariance is cluster-robust over the images. A shape seen on
+    translations in mm (a uniform offset is what the pose cannot tell from depth: it moves Z).
+    The depth is kept only when it predicts the images better in leave-one-out (the weighted
+    pose error of each image under the fit to the others) and the shape has
+    :data:`MIN_DEPTH_IMAGES` images or more; otherwise ``d = 0``. Their covariance is cluster-robust over the images. A shape seen on
     fewer than :data:`MIN_OFFSET_IMAGES` reference images (by its fit: a worn fillet may pass
     for a chamfer) keeps no offset.
 
