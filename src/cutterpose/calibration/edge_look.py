@@ -547,9 +547,9 @@ def calibrate_offsets(refs: list[ReferenceImage], cal: EdgeLookCalibration,
     translations in mm (a uniform offset is what the pose cannot tell from depth: it moves Z).
     The depth is kept only when it predicts the images better in leave-one-out (the weighted
     pose error of each image under the fit to the others) and the shape has
-    :data:`MIN_DEPTH_IMAGES` images or more; otherwise ``d = 0``. Their covariance is cluster-robust over the images. A shape seen on
-    fewer than :data:`MIN_OFFSET_IMAGES` reference images (by its fit: a worn fillet may pass
-    for a chamfer) keeps no offset.
+    :data:`MIN_DEPTH_IMAGES` images or more; otherwise ``d = 0``. Their covariance is
+    cluster-robust over the images. A shape seen on fewer than :data:`MIN_OFFSET_IMAGES`
+    reference images (by its fit: a worn fillet may pass for a chamfer) keeps no offset.
 
     The offsets' scatter (the budget's edge-model term): the standard deviation over the
     images of the uniform offset that zeroes each one's Z error with ``d`` applied.
