@@ -67,6 +67,7 @@ def run(seq: Path, with_full: bool = True, track: TrackParams | None = None,
                "lines_dropped": r.lines_dropped, "rms_px": r.rms_px,
                "reason": r.fallback_reason, "anchor": r.anchor}
         row |= {f"err_{n}": v for n, v in zip(DOF_NAMES, err)}
+        row |= {f"std_{n}": v for n, v in zip(DOF_NAMES, r.std_dof)}
         if r.anchor and r.anchor != "re-anchored":
             print(f"  {seq.name} frame {e['frame']}: {r.anchor}", file=sys.stderr)
         if with_full:
@@ -157,6 +158,13 @@ def summary(name: str, rows: list[dict], truth: dict) -> None:
         if dev:
             print(f"  |tracked - full pose| / std of the full measurement, same frame: median "
                   f"{np.median(dev):.2f}, largest {max(dev):.2f} (on {len(dev)} frames)")
+        # the tracker's own std against the full measurement's, same frame
+        ratio = np.array([[r[f"std_{n}"] / r[f"full_std_{n}"] for n in DOF_NAMES]
+                          for r in tr if r["full_ok"]])
+        if len(ratio):
+            print("  tracked std / full std, same frame, median (max): " + ", ".join(
+                f"{n} {m:.2f} ({x:.2f})" for n, m, x in
+                zip(DOF_NAMES, np.nanmedian(ratio, axis=0), np.nanmax(ratio, axis=0))))
         for r in tr:
             if not r.get("in_band"):
                 print(f"    outside: frame {r['frame']} {r['max_z_dof']} {r['max_z']:.2f} std "
