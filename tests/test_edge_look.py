@@ -83,7 +83,12 @@ def model_refs():
 def test_calibration_recovers_a_known_look(model_refs):
     """From profiles the edge model made with a known look, the fit with the shift held at 0
     recovers that look's lobe, and the design edge then comes out where the pose puts it."""
-    cal = calibrate_edge_look(model_refs, rounds=1)
+    ticks = []
+    cal = calibrate_edge_look(model_refs, rounds=1, tick=lambda *a: ticks.append(a))
+    # the progress callback saw every evaluation of the first round, counting up
+    assert len(ticks) > 10 and ticks[0][:2] == (1, 1)
+    assert [t[1] for t in ticks if t[0] == 1] == list(range(1, 1 + sum(t[0] == 1
+                                                                      for t in ticks)))
     assert abs(cal.look.specular / TRUE_LOOK.specular - 1) < 0.1, cal.look
     assert abs(cal.look.shininess / TRUE_LOOK.shininess - 1) < 0.15, cal.look
     # the nominal look leaves most of the cost; the recovered one only the noise
@@ -396,6 +401,33 @@ def test_cli_calibrate_needs_known_poses(tmp_path):
     res = runner.invoke(app, ["calibrate-edge-look", str(tmp_path / "a.png"), "--poses",
                               str(tmp_path / "poses.csv"), "--out", str(tmp_path / "l.json")])
     assert res.exit_code == 2 and "1 images but 2 poses" in res.output
+
+
+def test_cli_calibrate_pools_several_sets(tmp_path, monkeypatch):
+    """``calibrate-edge-look SET SET``: the reference images of both sets are pooled (the look
+    fit itself is stubbed here: it is tested above); a folder without truth.json is named."""
+    import cutterpose.calibration.edge_look as el
+
+    for seed in (3, 4):
+        res = runner.invoke(app, ["render-set", "--count", "1", "--seed", str(seed),
+                                  "--preset", "new", "--out", str(tmp_path / f"s{seed}")])
+        assert res.exit_code == 0, res.output
+    seen = {}
+
+    def stub(refs, progress=None, tick=None, **kw):
+        seen["n"] = len(refs)
+        tick(1, 1, el.MAX_EVALS)
+        return _calibration(specular=1.0, shininess=30.0)
+
+    monkeypatch.setattr(el, "calibrate_edge_look", stub)
+    res = runner.invoke(app, ["calibrate-edge-look", str(tmp_path / "s3"), str(tmp_path / "s4"),
+                              "--no-offsets", "--json", "--out", str(tmp_path / "look.json")])
+    assert res.exit_code == 0, res.output
+    assert seen["n"] == 2
+    assert load_edge_look(tmp_path / "look.json").report["shift_at_truth"]["calibrated"]
+    res = runner.invoke(app, ["calibrate-edge-look", str(tmp_path / "s3"), str(tmp_path),
+                              "--out", str(tmp_path / "l2.json")])
+    assert res.exit_code == 2 and "not a rendered set" in res.output
 
 
 def test_tracker_fits_the_calibrated_look(new_holder):

@@ -824,7 +824,8 @@ def calibrate_cmd(
 @app.command("calibrate-edge-look")
 @friendly
 def calibrate_edge_look_cmd(
-    source: list[str] = typer.Argument(..., help="A rendered set (folder with truth.json), or "
+    source: list[str] = typer.Argument(..., help="Rendered sets (folders with truth.json; "
+                                       "several are pooled, e.g. poses near and far), or "
                                        "images of the reference holder (files or folders) "
                                        "with --poses."),
     out: str = typer.Option(..., "--out", help="Edge look file to write (JSON)."),
@@ -839,7 +840,7 @@ def calibrate_edge_look_cmd(
     edge_shape: str = typer.Option("unknown", help="The reference holder's break: round, "
                                    "chamfer, or unknown (chosen per image by cost); with a "
                                    "rendered set, 'truth' takes each image's from truth.json."),
-    limit: int = typer.Option(None, help="Only the first N images of a set."),
+    limit: int = typer.Option(None, help="Only the first N images of each set."),
     offsets: bool = typer.Option(True, "--offsets/--no-offsets", help="Also calibrate, per "
                                  "shape, the design-edge offset the look still leaves at the "
                                  "known poses."),
@@ -865,10 +866,12 @@ def calibrate_edge_look_cmd(
         fail(f"--edge-shape must be round, chamfer, unknown or truth, got {edge_shape!r}")
     shape = edge_shape if edge_shape in ("round", "chamfer") else None
     if poses is None:
-        if len(source) != 1 or not (Path(source[0]) / "truth.json").is_file():
-            raise InputError("give one rendered set (a folder with truth.json), or images and "
-                             "--poses")
-        refs = load_reference_set(source[0], limit=limit, use_shape=edge_shape == "truth")
+        missing = [s for s in source if not (Path(s) / "truth.json").is_file()]
+        if missing:
+            raise InputError(f"{missing[0]}: not a rendered set (no truth.json); give rendered "
+                             "sets, or images and --poses")
+        refs = [r for s in source
+                for r in load_reference_set(s, limit=limit, use_shape=edge_shape == "truth")]
         if shape is not None:
             for r in refs:
                 r.shape = shape
@@ -885,7 +888,16 @@ def calibrate_edge_look_cmd(
                                      load_holder(holder) if holder else default_holder(), shape)
     log(f"{len(refs)} reference images; fitting the look with the design edge at the known "
         "poses")
-    cal = calibrate_edge_look(refs, progress=log)
+    from rich.progress import Progress
+
+    with Progress(transient=True, console=None) as bar:
+        task = bar.add_task("fitting the look", total=None)
+
+        def tick(k, n, n_max):
+            bar.update(task, description=f"fitting the look, round {k}", completed=n,
+                       total=n_max)
+
+        cal = calibrate_edge_look(refs, progress=log, tick=tick)
     if offsets:
         log("the design-edge offset per shape at the known poses")
         cal = calibrate_offsets(refs, cal)
