@@ -153,7 +153,9 @@ def test_pose_jacobian_is_the_residuals_derivative():
 
     rng = np.random.default_rng(4)
     K = default_camera("table1").K
-    X = np.column_stack([rng.uniform(-90, 90, (40, 2)), np.zeros(40)])
+    # off the face plane too (design points are at Z = 0; the formula holds for any point)
+    X = np.column_stack([rng.uniform(-90, 90, (40, 2)), np.r_[np.zeros(20),
+                                                              rng.uniform(-5, 40, 20)]])
     n = rng.normal(size=(40, 2))
     n /= np.linalg.norm(n, axis=1, keepdims=True)
     p = rng.uniform(0, 3000, (40, 2))

@@ -129,22 +129,25 @@ def _jacobian(dof, X, n, K) -> np.ndarray:
     """(S, 6) derivative of :func:`_residuals` by the DOFs, in closed form: with
     ``R = Rz(gamma) Ry(beta) Rx(alpha)``, ``dR/dalpha = R [e_x]x``, ``dR/dbeta =
     R [Rx^T e_y]x``, ``dR/dgamma = [e_z]x R`` (per radian), and the projection's
-    ``d(x/z, y/z)/dXc``."""
+    ``d(x/z, y/z)/dXc`` (cross products written out: these are 3-vectors per point)."""
     R = rotation_from_euler_deg(*dof[:3])
     RX = X @ R.T
-    Xc = RX + dof[3:]
-    x, y, z = Xc.T
-    D = np.zeros((len(X), 2, 3))
-    D[:, 0, 0] = D[:, 1, 1] = 1.0 / z
-    D[:, 0, 2], D[:, 1, 2] = -x / z ** 2, -y / z ** 2
-    g = np.einsum("si,ij,sjk->sk", n, K[:2, :2], D)                    # (S, 3) dr / dXc
+    x, y, z = (RX + dof[3:]).T
+    nk = n @ K[:2, :2]                                                  # (S, 2)
+    g = np.column_stack([nk[:, 0] / z, nk[:, 1] / z,
+                         -(nk[:, 0] * x + nk[:, 1] * y) / z ** 2])      # (S, 3) dr / dXc
     a = math.radians(dof[0])
-    ax_b = np.array([0.0, math.cos(a), -math.sin(a)])                   # Rx^T e_y
+    c, s_ = math.cos(a), math.sin(a)                                    # Rx^T e_y = (0, c, -s)
+    X0, X1, X2 = X.T
+    w_a = np.column_stack([np.zeros_like(X0), -X2, X1])                 # e_x x X
+    w_b = np.column_stack([c * X2 + s_ * X1, -s_ * X0, -c * X0])        # (0, c, -s) x X
+    w_g = np.column_stack([-RX[:, 1], RX[:, 0], np.zeros_like(X0)])     # e_z x (R X)
     k = math.pi / 180.0
+    gR = g @ R                                                          # dr / d(X before R)
     J = np.empty((len(X), 6))
-    J[:, 0] = k * np.einsum("sk,sk->s", g, np.cross([1.0, 0.0, 0.0], X) @ R.T)
-    J[:, 1] = k * np.einsum("sk,sk->s", g, np.cross(ax_b, X) @ R.T)
-    J[:, 2] = k * np.einsum("sk,sk->s", g, np.cross([0.0, 0.0, 1.0], RX))
+    J[:, 0] = k * np.sum(gR * w_a, axis=1)
+    J[:, 1] = k * np.sum(gR * w_b, axis=1)
+    J[:, 2] = k * np.sum(g * w_g, axis=1)
     J[:, 3:] = g
     return J
 
