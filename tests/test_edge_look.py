@@ -154,6 +154,11 @@ def test_offset_calibration_recovers_a_known_depth():
     assert looks.covers(min(z)) and looks.covers(max(z) * 1.04)
     assert not looks.covers(max(z) * 1.1) and not looks.covers(min(z) * 0.9)
     assert not replace(looks, distance_range_mm=None).covers(min(z))
+    lo, hi = dict(back.radius_range_mm)["round"]
+    assert 0.4 < lo <= hi < 1.8            # the references' radii: 0.5-1.6 mm per edge
+    assert looks.covers(min(z), "round", hi) and looks.covers(min(z), "chamfer", 0.0)
+    assert not looks.covers(min(z), "round", hi + 0.5)
+    assert not looks.covers(min(z), "round", lo - 0.3)
 
 
 def test_offset_of_a_calibrated_depth_follows_the_lean():
@@ -237,10 +242,15 @@ def test_edge_look_changes_the_fitted_look(new_holder):
     bare = measure(img, CAM, HOLDER, method="dm+b", limits=limits,
                    edge_look=replace(cal, offset_mm=(), offset_scatter_mm=()))
     assert "model floor" in bare.quality.budget.to_dict()["parts"]
-    # offsets measured at other distances do not vouch for this one (the pose is at 614 mm)
+    # offsets measured at other distances do not vouch for this one (the pose is at 614 mm),
+    # nor on breaks unlike this one
     far = measure(img, CAM, HOLDER, method="dm+b", limits=limits,
                   edge_look=replace(cal, distance_range_mm=(800.0, 900.0)))
     assert "model floor" in far.quality.budget.to_dict()["parts"]
+    big = tuple((k, (3.0, 5.0)) for k in ("round", "chamfer"))
+    worn_ref = measure(img, CAM, HOLDER, method="dm+b", limits=limits,
+                       edge_look=replace(cal, radius_range_mm=big))
+    assert "model floor" in worn_ref.quality.budget.to_dict()["parts"]
     # and the JSON says why
     assert calib.estimate.info["band"].to_dict()["look"]["calibration_covers_distance"] is True
     assert far.estimate.info["band"].to_dict()["look"]["calibration_covers_distance"] is False
@@ -329,6 +339,8 @@ def _good_dict():
     (lambda d: d.update(design_edge_offset_depth_cov_mm2={"round": [1.0]}),
      "design_edge_offset_depth_cov_mm2"),
     (lambda d: d.update(distance_range_mm="near"), "distance_range_mm"),
+    (lambda d: d.update(radius_range_mm={"round": [2.0, 1.0]}), "radius_range_mm"),
+    (lambda d: d.update(radius_range_mm={"round": 1.0}), "radius_range_mm"),
 ])
 def test_malformed_look_file_is_a_typed_error(tmp_path, change, words):
     d = _good_dict()

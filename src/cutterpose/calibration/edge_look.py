@@ -44,8 +44,9 @@ continuous parameters to that:
   are fitted to the pose errors. ``dm+b`` adds the offset to every fitted shift of that shape.
   The offsets' scatter over the reference images is how far one image's design edge may still
   be off: the budget's edge-model term with a calibration (the pose change for a uniform shift
-  by it), with the depth's 1-sigma; there it replaces the generic model floor, within the depths
-  of the reference poses only (``distance_range_mm``). It is measured, where the variants only
+  by it), with the offset's and depth's joint covariance; there it replaces the generic model
+  floor, within the depths of the reference poses (``distance_range_mm``) and the radii of the
+  reference breaks (``radius_range_mm``) only. It is measured, where the variants only
   propagate the parameters' uncertainty through a model that does not fit: on three worn images
   the variants (worn calibration) made the edge-model term 0.66-0.78 mm at 3 sigma, the
   measured scatter 0.39-0.52 mm.
@@ -315,6 +316,8 @@ class EdgeLookCalibration:
     offset_cov: tuple[tuple[str, tuple[tuple[float, float], tuple[float, float]]], ...] = ()
     #: the depths (mm, Z of the holder) of the reference poses the offsets were measured at
     distance_range_mm: tuple[float, float] | None = None
+    #: per shape, the range of the reference images' median fitted radius (mm)
+    radius_range_mm: tuple[tuple[str, tuple[float, float]], ...] = ()
 
     def sd(self, per_image: bool = False) -> dict:
         """1-sigma of each fitted parameter in its natural unit (delta method through the log
@@ -355,7 +358,7 @@ class EdgeLookCalibration:
         return BandLooks(self.look, self.variants(variant_axes) if variant_axes else (),
                          tuple(self.blurs_px), tuple(self.offset_mm), scatter,
                          tuple(self.offset_depth_mm), tuple(self.offset_cov),
-                         self.distance_range_mm)
+                         self.distance_range_mm, tuple(self.radius_range_mm))
 
     def to_dict(self) -> dict:
         lk = self.look
@@ -378,6 +381,7 @@ class EdgeLookCalibration:
                                                      for k, v in self.offset_cov},
                 "distance_range_mm": (list(self.distance_range_mm)
                                       if self.distance_range_mm else None),
+                "radius_range_mm": {k: list(v) for k, v in self.radius_range_mm},
                 "report": self.report}
 
 
@@ -570,6 +574,7 @@ def calibrate_offsets(refs: list[ReferenceImage], cal: EdgeLookCalibration,
     """
     looks = replace(cal.band_looks(), offset_mm=(), offset_depth_mm=())
     per: dict = {}
+    radii: dict = {}
     z = [float(r.t_cam_holder_mm[2]) for r in refs]
     for ref in refs:
         f = fit_band(ref.profiles, ref.camera, ref.holder, ref.R_cam_holder,
@@ -584,6 +589,9 @@ def calibrate_offsets(refs: list[ReferenceImage], cal: EdgeLookCalibration,
             continue
         per.setdefault(f.best.look.shape, []).append(
             (e0, (e1 - e0) / OFFSET_STEP_MM, (e2 - e0) / DEPTH_STEP_MM))
+        r = f.best.radius_mm[ref.profiles.valid & np.isfinite(f.best.radius_mm)]
+        if len(r):
+            radii.setdefault(f.best.look.shape, []).append(float(np.median(r)))
     off, sd_off, scatter, depth, sd_depth, cov_od, rep = [], [], [], [], [], [], {}
     for shape, rows in sorted(per.items()):
         n = len(rows)
@@ -627,7 +635,9 @@ def calibrate_offsets(refs: list[ReferenceImage], cal: EdgeLookCalibration,
                    offset_scatter_mm=tuple(scatter), offset_depth_mm=tuple(depth),
                    offset_depth_sd_mm=tuple(sd_depth), offset_cov=tuple(cov_od),
                    report=report,
-                   distance_range_mm=(float(min(z)), float(max(z))) if off else None)
+                   distance_range_mm=(float(min(z)), float(max(z))) if off else None,
+                   radius_range_mm=tuple((k, (min(radii[k]), max(radii[k])))
+                                         for k, _ in off if k in radii))
 
 
 def _offset_weights() -> np.ndarray:
@@ -761,7 +771,21 @@ def edge_look_from_dict(d, where: str = "edge look") -> EdgeLookCalibration:
                                _offsets(d, "design_edge_offset_scatter_mm", where),
                                _offsets(d, "design_edge_depth_mm", where, MAX_DEPTH_MM),
                                _offsets(d, "design_edge_depth_sd_mm", where, MAX_DEPTH_MM),
-                               _offset_covariances(d, where), _distance_range(d, where))
+                               _offset_covariances(d, where), _distance_range(d, where),
+                               _radius_ranges(d, where))
+
+
+def _radius_ranges(d: dict, where: str) -> tuple:
+    """The optional ``{shape: [smallest, largest]}`` median radii of the reference breaks."""
+    o = d.get("radius_range_mm", {})
+    ok = isinstance(o, dict) and all(
+        k in ("round", "chamfer") and isinstance(v, list) and len(v) == 2
+        and all(isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
+                and x >= 0 for x in v) and v[0] <= v[1] for k, v in o.items())
+    if not ok:
+        raise EdgeLookFileError(f"{where}: 'radius_range_mm' must map 'round' / 'chamfer' to "
+                                "[smallest, largest] radii in mm")
+    return tuple((k, (float(v[0]), float(v[1]))) for k, v in sorted(o.items()))
 
 
 def _offset_covariances(d: dict, where: str) -> tuple:

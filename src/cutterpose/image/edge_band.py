@@ -91,8 +91,10 @@ CAL_RADII_MM = np.r_[np.arange(0.0, 2.0, FINE_STEP_MM), np.arange(2.0, 6.5 + 1e-
                                                                     2 * FINE_STEP_MM)]
 
 
-#: how far beyond its reference poses' depths a calibration's measured offsets are trusted
+#: how far beyond its reference poses' depths a calibration's measured offsets are trusted,
+#: and beyond its reference breaks' radii (mm: the coarse scan's step)
 RANGE_MARGIN = 0.05
+RADIUS_MARGIN_MM = 0.25
 
 
 @dataclass(frozen=True)
@@ -128,16 +130,27 @@ class BandLooks:
     #: the depths (Z of the holder, mm) of the reference poses the offsets were measured at
     #: (None: not known); see :meth:`covers`
     distance_range_mm: tuple[float, float] | None = None
+    #: per shape, the range of the reference images' median fitted radius (mm); see
+    #: :meth:`covers`
+    radius_range_mm: tuple[tuple[str, tuple[float, float]], ...] = ()
 
-    def covers(self, z_mm: float) -> bool:
+    def covers(self, z_mm: float, shape: str | None = None,
+               radius_mm: float | None = None) -> bool:
         """Whether a pose at depth ``z_mm`` lies where the offsets were measured (the reference
-        poses' range widened by :data:`RANGE_MARGIN`): the blur, the pixels per mm and the view
-        change with the distance, and an offset measured at 600 mm does not vouch for 900 mm
-        (on an approach from 900 mm the calibrated Z error drifts by ~0.4 mm)."""
+        poses' range widened by :data:`RANGE_MARGIN`), and a break of ``shape`` with median
+        radius ``radius_mm`` is like the reference breaks (their range, +-
+        :data:`RADIUS_MARGIN_MM`): the blur, the pixels per mm and the view change with the
+        distance (on an approach from 900 mm the calibrated Z error drifts by ~0.4 mm), and a
+        new holder's calibration applied to a sharp edge is worse than the generic looks."""
         if self.distance_range_mm is None:
             return False
         lo, hi = self.distance_range_mm
-        return lo * (1 - RANGE_MARGIN) <= z_mm <= hi * (1 + RANGE_MARGIN)
+        if not lo * (1 - RANGE_MARGIN) <= z_mm <= hi * (1 + RANGE_MARGIN):
+            return False
+        rr = dict(self.radius_range_mm).get(shape) if shape is not None else None
+        if rr is None or radius_mm is None:
+            return True
+        return rr[0] - RADIUS_MARGIN_MM <= radius_mm <= rr[1] + RADIUS_MARGIN_MM
 
     def for_shape(self, shape: str) -> em.EdgeLook:
         return replace(self.look, shape=shape, profile_sigma_px=0.0)

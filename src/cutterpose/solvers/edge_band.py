@@ -27,7 +27,8 @@ The error budget (:mod:`cutterpose.budget`) gets three parts:
 * ``model floor``: the pose change for a uniform outward shift of every design point by
   :data:`SHIFT_FLOOR_MM` (the profile model's systematic error that no alternative look
   shows: a uniform shift is what the pose cannot tell from depth). Not with a calibrated look
-  whose offsets were measured at known poses at this distance (``BandLooks.covers``): their
+  whose offsets were measured at known poses at this distance and on breaks like this one
+  (``BandLooks.covers``): their
   scatter (in ``edge model``) is that error measured, where the floor guesses it (counting both
   would count it twice); farther or nearer than the reference poses the floor stays.
 
@@ -299,7 +300,10 @@ def measure_band(image, camera: Camera, holder: Holder, start: PoseEstimate,
                                       valid) - dof
                     cov_model = cov_model + np.outer(d_c, d_c)
     parts = {"noise": cov_noise, "edge model": cov_model}
-    covers = None if looks is None else bool(sc and looks.covers(float(dof[5])))
+    r_med = fit.best.radius_mm[valid]
+    covers = None if looks is None else bool(
+        sc and looks.covers(float(dof[5]), fit.best.look.shape,
+                            float(np.median(r_med)) if len(r_med) else None))
     if not covers:
         # a uniform outward shift of the design edge by the model floor: what no look shows;
         # a calibration that measured the offsets' scatter at known poses at this distance
