@@ -252,9 +252,9 @@ def test_edge_look_changes_the_fitted_look(new_holder):
                        edge_look=replace(cal, radius_range_mm=big))
     assert "model floor" in worn_ref.quality.budget.to_dict()["parts"]
     # and the JSON says why
-    assert calib.estimate.info["band"].to_dict()["look"]["calibration_covers_distance"] is True
-    assert far.estimate.info["band"].to_dict()["look"]["calibration_covers_distance"] is False
-    assert plain.estimate.info["band"].to_dict()["look"]["calibration_covers_distance"] is None
+    assert calib.estimate.info["band"].to_dict()["look"]["calibration_covers"] is True
+    assert far.estimate.info["band"].to_dict()["look"]["calibration_covers"] is False
+    assert plain.estimate.info["band"].to_dict()["look"]["calibration_covers"] is None
     # the variants round the look (band_looks(variant_axes=...)) enter the edge-model term
     feats = detect_features(img, CAM, HOLDER, FeatureParams.for_camera(CAM))
     start = plain.estimate.info["start"]

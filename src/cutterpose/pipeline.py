@@ -198,8 +198,8 @@ class Measurement:
                          f"(median of {d['segments_valid']} segments, {d['segments_used']} "
                          "used for the pose)")
             if band.calibration_covers is False:
-                lines.append("edge look: calibrated in the cell at other distances than this "
-                             "one: the budget keeps the generic model floor")
+                lines.append("edge look: calibrated in the cell on other distances, breaks or "
+                             "shapes than this one: the budget keeps the generic model floor")
         return lines
 
     def to_dict(self) -> dict:

@@ -92,8 +92,9 @@ class BandPose:
     chi: float                    # root of the weighted chi-square per degree of freedom
     passes: int
     calibrated: bool = False      # the look was calibrated in the cell (BandLooks)
-    #: the calibration's measured offset scatter stands for the model floor here (its
-    #: reference poses cover this distance); None without a calibration
+    #: the calibration's measured offset scatter stands for the model floor here (it has an
+    #: offset for this shape, and its reference poses and breaks cover this distance and
+    #: radius, ``BandLooks.covers``); None without a calibration
     calibration_covers: bool | None = None
 
     @property
@@ -112,7 +113,7 @@ class BandPose:
                 "segments_valid": int(v.sum()), "residual_chi": round(self.chi, 3),
                 "plausible_looks": len(self.fit.plausible), "passes": self.passes,
                 "look": {"calibrated": self.calibrated,
-                         "calibration_covers_distance": self.calibration_covers,
+                         "calibration_covers": self.calibration_covers,
                          "specular": b.look.specular,
                          "shininess": b.look.shininess, "face_albedo": b.look.face_albedo,
                          "wall_albedo": b.look.wall_albedo,
