@@ -218,6 +218,38 @@ def test_render_set_writes_the_protocol_format(tmp_path):
                                       cv2.imread(str(tmp_path / "par" / e["file"])))
 
 
+def test_render_set_over_a_distance_range(tmp_path):
+    """``distance_mm``: depths drawn in (near, far) with the same angles and sideways shifts as
+    the default set of the seed, the light auto-exposed: the face's grey level stays near the
+    600 mm set's (without it, (600 / 900)^2 = 0.44 of it at 900 mm)."""
+    near = json.loads(render_set(2, 5, tmp_path / "near", CAM, mix=(("easy", 1.0),))
+                      .read_text())["images"]
+    far = json.loads(render_set(2, 5, tmp_path / "far", CAM, mix=(("easy", 1.0),),
+                                distance_mm=(850.0, 900.0)).read_text())
+    assert far["distance_mm"] == [850.0, 900.0]
+    for a, b in zip(near, far["images"]):
+        pa = Pose(np.array(a["R_cam_holder"]), np.array(a["t_cam_holder_mm"]))
+        pb = Pose(np.array(b["R_cam_holder"]), np.array(b["t_cam_holder_mm"]))
+        assert 850.0 <= pb.t_mm[2] <= 900.0
+        np.testing.assert_allclose(pb.euler_deg, pa.euler_deg)
+        np.testing.assert_allclose(pb.t_mm[:2], pa.t_mm[:2])
+
+        def face_grey(e, folder):
+            img = cv2.imread(str(tmp_path / folder / e["file"]), cv2.IMREAD_GRAYSCALE)
+            c = np.array(e["corners_px"])
+            lo, hi = c.min(axis=0).astype(int), c.max(axis=0).astype(int)
+            return float(np.median(img[lo[1]:hi[1], lo[0]:hi[0]]))
+
+        ratio = face_grey(b, "far") / face_grey(a, "near")
+        assert 0.75 < ratio < 1.33, ratio
+
+
+def test_cli_render_set_distance_option(tmp_path):
+    res = CliRunner().invoke(app, ["render-set", "--count", "1", "--distance-mm", "900:600",
+                                   "--out", str(tmp_path / "x")])
+    assert res.exit_code == 2 and "--distance-mm" in res.output
+
+
 def test_cli_render_and_render_set(tmp_path):
     cam_file = tmp_path / "cam.json"
     cam_file.write_text(json.dumps(CAM.to_dict()))

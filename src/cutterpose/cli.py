@@ -260,12 +260,25 @@ def render_set_cmd(
                                      "needs --handeye and --holder-base-pose."),
     handeye: str = _CELL_HANDEYE,
     holder_base_pose: str = _CELL_HOLDER,
+    distance_mm: str = typer.Option(None, "--distance-mm", help="NEAR:FAR: draw the camera "
+                                    "distance uniformly in it (mm) instead of 600 +- 20, the "
+                                    "light auto-exposed as in render-sequence (e.g. an edge "
+                                    "look reference over an approach: 580:920)."),
 ):
     """Render an image set with its truth.json (PROTOCOL.md, exchange formats)."""
     from rich.progress import Progress
 
     from .errors import InputError
 
+    dist = None
+    if distance_mm is not None:
+        try:
+            dist = tuple(float(v) for v in distance_mm.split(":"))
+        except ValueError:
+            dist = ()
+        if len(dist) != 2 or not 0 < dist[0] <= dist[1]:
+            raise InputError(f"--distance-mm must be NEAR:FAR in mm with 0 < NEAR <= FAR, got "
+                             f"{distance_mm!r}")
     poses = None
     cell = (flange_poses, handeye, holder_base_pose)
     if any(v is not None for v in cell):
@@ -296,7 +309,7 @@ def render_set_cmd(
             task = bar.add_task(f"rendering ({fp.name}, pbr)", total=count)
             path = render_field_set(count, seed, out, fp, cam, variant=variant, spp=spp,
                                     progress=lambda done, n: bar.update(task, completed=done),
-                                    resume=resume)
+                                    resume=resume, distance_mm=dist)
         typer.echo(f"wrote {count} images and {path}")
         return
     if engine != "analytic":
@@ -313,7 +326,7 @@ def render_set_cmd(
         task = bar.add_task("rendering", total=count)
         path = render_set(count, seed, out, cam, mix=mix, workers=workers, scheduler=scheduler,
                           progress=lambda done, n: bar.update(task, completed=done),
-                          poses=poses)
+                          poses=poses, distance_mm=dist)
     typer.echo(f"wrote {count} images and {path}")
 
 

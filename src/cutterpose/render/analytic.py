@@ -900,25 +900,44 @@ DEFAULT_MIX = (("easy", 0.35), ("dim", 0.15), ("worn", 0.15), ("occluded", 0.1),
 
 
 def random_pose(rng: np.random.Generator, max_angle_deg: float = 10.0,
-                max_shift_mm: float = 20.0) -> Pose:
+                max_shift_mm: float = 20.0, distance_mm: tuple[float, float] | None = None
+                ) -> Pose:
     """A pose drawn uniformly within +-``max_angle_deg`` and +-``max_shift_mm`` of the nominal
-    pose (PROTOCOL.md, real-image experiment)."""
+    pose (PROTOCOL.md, real-image experiment); with ``distance_mm`` = (near, far) the depth is
+    drawn uniformly in it instead (the same draws: the angles and sideways shifts do not
+    change)."""
     ang = rng.uniform(-max_angle_deg, max_angle_deg, 3)
     sh = rng.uniform(-max_shift_mm, max_shift_mm, 3)
-    return Pose.from_euler(*ang, sh[0], sh[1], 600.0 + sh[2])
+    if distance_mm is None:
+        z = D_REF_MM + sh[2]
+    else:
+        lo, hi = distance_mm
+        z = lo + (hi - lo) * (sh[2] + max_shift_mm) / (2 * max_shift_mm)
+    return Pose.from_euler(*ang, sh[0], sh[1], z)
+
+
+def auto_exposed(light_dn: float, pose: Pose) -> float:
+    """The light level (DN) of an auto-exposing camera at ``pose``: ``light_dn`` at 600 mm,
+    scaled by ``(Z / 600 mm)^2`` so that the face keeps its grey level (render-sequence's and
+    render-set's ``--distance-mm``)."""
+    return light_dn * (float(pose.t_mm[2]) / D_REF_MM) ** 2
 
 
 def _set_item(args) -> tuple[dict, bytes]:
     """Render image ``i`` of a set; returns its ``truth.json`` entry and the PNG file's bytes
     (the caller writes it, so workers on other machines need no access to ``out_dir``)."""
-    i, seed, camera, holder, names, p, max_angle_deg, max_shift_mm, given = args
+    i, seed, camera, holder, names, p, max_angle_deg, max_shift_mm, given = args[:9]
+    distance_mm = args[9] if len(args) > 9 else None
     img_seed = int(np.random.SeedSequence([seed, i]).generate_state(1)[0])
     rng = np.random.default_rng(img_seed)
-    pose = random_pose(rng, max_angle_deg, max_shift_mm)
+    pose = random_pose(rng, max_angle_deg, max_shift_mm, distance_mm)
     if given is not None:   # drawn all the same, so the rest of the image is the same set's
         pose = given
     name = names[int(rng.choice(len(names), p=p))]
-    r = render_holder(pose, camera, holder, PRESETS[name], seed=img_seed)
+    settings = PRESETS[name]
+    if distance_mm is not None:
+        settings = replace(settings, light_dn=auto_exposed(settings.light_dn, pose))
+    r = render_holder(pose, camera, holder, settings, seed=img_seed)
     fname = f"img_{i:04d}.png"
     ok, png = cv2.imencode(".png", r.image)
     if not ok:  # pragma: no cover - PNG encoding of a uint8 image does not fail
@@ -929,11 +948,14 @@ def _set_item(args) -> tuple[dict, bytes]:
 def render_set(count: int, seed: int, out_dir, camera: Camera | None = None,
                holder: Holder | None = None, mix=DEFAULT_MIX, max_angle_deg: float = 10.0,
                max_shift_mm: float = 20.0, progress=None, workers: int = 1,
-               scheduler=None, poses: list[Pose] | None = None) -> Path:
+               scheduler=None, poses: list[Pose] | None = None,
+               distance_mm: tuple[float, float] | None = None) -> Path:
     """Render ``count`` images at random poses into ``out_dir`` with its ``truth.json``.
 
     ``poses``: the ``T_cam_holder`` of each image instead (``count`` of them), e.g. a holder
-    seen from the stations of a robot cell.
+    seen from the stations of a robot cell. ``distance_mm``: (near, far) depths drawn
+    uniformly instead of 600 +- ``max_shift_mm``, the light auto-exposed
+    (:func:`auto_exposed`).
 
     The difficulty of each image is drawn from ``mix`` (preset names and weights) and recorded
     under ``"difficulty"``; image ``i`` uses the seed ``SeedSequence([seed, i])``, so any image
@@ -957,7 +979,7 @@ def render_set(count: int, seed: int, out_dir, camera: Camera | None = None,
     if poses is not None and len(poses) != count:
         raise InputError(f"{len(poses)} poses given for {count} images")
     jobs = [(i, seed, camera, holder, names, p, max_angle_deg, max_shift_mm,
-             None if poses is None else poses[i]) for i in range(count)]
+             None if poses is None else poses[i], distance_mm) for i in range(count)]
     written = [0]
 
     def write(i, result):
@@ -973,6 +995,9 @@ def render_set(count: int, seed: int, out_dir, camera: Camera | None = None,
     images = run_jobs(_set_item, jobs, workers, scheduler, write, store=lambda r: r[0])
     doc = {"camera": camera.to_dict(), "holder": holder.to_dict(), "seed": seed,
            "presets": {n: asdict(PRESETS[n]) for n in names}, "images": images}
+    if distance_mm is not None:
+        doc["distance_mm"] = list(distance_mm)
+        doc["auto_exposure"] = "light_dn * (Z / 600 mm)^2"
     path = out / "truth.json"
     path.write_text(json.dumps(doc, indent=1))
     return path

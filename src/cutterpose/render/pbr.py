@@ -71,6 +71,7 @@ from .analytic import (
     D_REF_MM,
     RenderSettings,
     add_sensor_noise,
+    auto_exposed,
     defocus,
     fractal_noise,
     normalized_grid,
@@ -1144,12 +1145,14 @@ def render_field_set(count: int, seed: int, out_dir, preset: FieldPreset | str =
                      camera: Camera | None = None, holder: Holder | None = None,
                      variant: str | None = None, spp: int | None = None,
                      max_angle_deg: float = 10.0, max_shift_mm: float = 20.0,
-                     progress=None, resume: bool = False) -> Path:
+                     progress=None, resume: bool = False,
+                     distance_mm: tuple[float, float] | None = None) -> Path:
     """Render ``count`` pbr images at random poses (PROTOCOL.md, real-image experiment) into
     ``out_dir`` with its ``truth.json`` (rewritten after every image, so a set that is still
     rendering can already be read). Image ``i`` uses the seed ``SeedSequence([seed, i])``.
     ``resume``: keep the images of an interrupted run of the same set (same seed and preset,
-    file present) and render the rest."""
+    file present) and render the rest. ``distance_mm``: (near, far) depths drawn uniformly
+    instead of 600 +- ``max_shift_mm``, the light auto-exposed as in ``render-sequence``."""
     if count < 1:
         raise InputError(f"count must be >= 1, got {count}")
     camera = default_camera("table1") if camera is None else camera
@@ -1159,6 +1162,9 @@ def render_field_set(count: int, seed: int, out_dir, preset: FieldPreset | str =
     out.mkdir(parents=True, exist_ok=True)
     doc = {"camera": camera.to_dict(), "holder": holder.to_dict(), "seed": seed,
            "engine": "pbr", "presets": {preset.name: asdict(preset)}, "images": []}
+    if distance_mm is not None:
+        doc["distance_mm"] = list(distance_mm)
+        doc["auto_exposure"] = "light_dn * (Z / 600 mm)^2"
     path = out / "truth.json"
     done = {}
     if resume and path.is_file():
@@ -1170,8 +1176,11 @@ def render_field_set(count: int, seed: int, out_dir, preset: FieldPreset | str =
             doc["images"].append(done[f"img_{i:04d}.png"])
             continue
         img_seed = int(np.random.SeedSequence([seed, i]).generate_state(1)[0])
-        pose = random_pose(np.random.default_rng(img_seed), max_angle_deg, max_shift_mm)
-        r = render_field(pose, camera, holder, preset, seed=img_seed, variant=variant, spp=spp)
+        pose = random_pose(np.random.default_rng(img_seed), max_angle_deg, max_shift_mm,
+                           distance_mm)
+        lit = (preset if distance_mm is None
+               else preset.with_(light_dn=auto_exposed(preset.light_dn, pose)))
+        r = render_field(pose, camera, holder, lit, seed=img_seed, variant=variant, spp=spp)
         fname = f"img_{i:04d}.png"
         if not cv2.imwrite(str(out / fname), r.image):
             raise InputError(f"{out}: could not write {fname}")

@@ -34,7 +34,7 @@ from ..errors import InputError
 from ..geometry.camera import Camera, default_camera
 from ..geometry.holder import Holder, default_holder
 from ..geometry.pose import Pose
-from .analytic import D_REF_MM, RenderSettings, preset, render_holder
+from .analytic import RenderSettings, auto_exposed, preset, render_holder
 
 __all__ = ["ENGINES", "PRESET_LOOKUP", "engine", "engine_preset", "approach_poses",
            "render_sequence"]
@@ -121,7 +121,7 @@ def _frame(args):
     """Render one frame (a job of :func:`cutterpose.parallel.run_jobs`): (entry, PNG bytes)."""
     i, k, pose, camera, holder, settings, eng, seed = args[:8]
     extra = args[8] if len(args) > 8 else {}
-    s = settings.with_(light_dn=settings.light_dn * (float(pose.t_mm[2]) / D_REF_MM) ** 2)
+    s = settings.with_(light_dn=auto_exposed(settings.light_dn, pose))
     noise = int(np.random.SeedSequence([seed, 1, k]).generate_state(1)[0])
     r = engine(eng)(pose, camera, holder, s, seed=seed, noise_seed=noise, **extra)
     name = f"frame_{i:04d}.png"
