@@ -101,6 +101,15 @@ def test_calibration_recovers_a_known_look(model_refs):
     assert abs(calibrated["mean_px"]) < abs(generic["mean_px"])
 
 
+def test_calibration_with_worker_processes_is_the_same(model_refs):
+    """``workers=2``: the cost evaluated in two processes (each holding the reference images)
+    gives the same look, covariance and report as one process."""
+    one = calibrate_edge_look(model_refs, rounds=1)
+    two = calibrate_edge_look(model_refs, rounds=1, workers=2)
+    assert two.x == one.x and two.cov_mean == one.cov_mean
+    assert two.report["cost_ratio_to_start"] == one.report["cost_ratio_to_start"]
+
+
 def test_offset_calibration_recovers_a_known_offset():
     """Profiles of the right look whose design edge lies 0.03 mm outside the true one: dm+b's fit
     puts it there (to its scan's grid: 0.2 px steps and a parabola, ~0.01 mm), the offset

@@ -854,6 +854,8 @@ def calibrate_edge_look_cmd(
                                    "chamfer, or unknown (chosen per image by cost); with a "
                                    "rendered set, 'truth' takes each image's from truth.json."),
     limit: int = typer.Option(None, help="Only the first N images of each set."),
+    workers: int = typer.Option(1, min=1, help="Processes that evaluate the look's cost (the "
+                                "result does not change; ~1.8x faster with 2)."),
     offsets: bool = typer.Option(True, "--offsets/--no-offsets", help="Also calibrate, per "
                                  "shape, the design-edge offset the look still leaves at the "
                                  "known poses."),
@@ -910,7 +912,7 @@ def calibrate_edge_look_cmd(
             bar.update(task, description=f"fitting the look, round {k}", completed=n,
                        total=n_max)
 
-        cal = calibrate_edge_look(refs, progress=log, tick=tick)
+        cal = calibrate_edge_look(refs, progress=log, tick=tick, workers=workers)
     if offsets:
         log("the design-edge offset per shape at the known poses")
         cal = calibrate_offsets(refs, cal)
