@@ -31,6 +31,7 @@ from cutterpose.image import edge_model as em
 from cutterpose.image.edge_band import (
     STEP_PX,
     BandLooks,
+    DesignEdgeOffsets,
     model_grid_px,
     sample_band,
     view_lean,
@@ -123,14 +124,14 @@ def test_offset_calibration_recovers_a_known_offset():
                        wall_albedo=TRUE_LOOK.wall_albedo, pocket_level=TRUE_LOOK.pocket_level)
     before = shift_at_truth(refs, cal.band_looks(), shapes=("round",))
     cal = calibrate_offsets(refs, cal, shapes=("round",))
-    off = dict(cal.offset_mm)
+    off = dict(cal.offsets.offset_mm)
     assert set(off) == {"round"}
     assert abs(before["mean_mm"] - 0.03) < 0.012
     assert abs(off["round"] + before["mean_mm"]) < 0.004, off
     after = shift_at_truth(refs, cal.band_looks(), shapes=("round",))
     assert abs(after["mean_mm"]) < 0.004
     back = load_edge_look_dict(cal.to_dict())
-    assert back.offset_mm == cal.offset_mm
+    assert back.offsets.offset_mm == cal.offsets.offset_mm
 
 
 def test_offset_calibration_recovers_a_known_depth():
@@ -149,21 +150,21 @@ def test_offset_calibration_recovers_a_known_depth():
     cal = calibrate_offsets(refs, cal, shapes=("round",))
     rep = cal.report["design_edge_offset"]["round"]
     assert rep["loo_error"]["uniform+depth"] < rep["loo_error"]["uniform"]
-    assert abs(dict(cal.offset_depth_mm)["round"] - 0.3) < 0.06, rep
+    assert abs(dict(cal.offsets.depth_mm)["round"] - 0.3) < 0.06, rep
     before, after = (np.array(rep[k]) for k in ("pose_error_sd_before", "pose_error_sd_after"))
     assert np.all(after[3:5] < 0.3 * before[3:5]), (before, after)   # X, Y
     back = load_edge_look_dict(cal.to_dict())
-    assert back.offset_depth_mm == cal.offset_depth_mm
-    assert back.offset_cov == cal.offset_cov
-    c = np.array(dict(cal.offset_cov)["round"])
-    assert c[1, 1] > 0 and np.isclose(np.sqrt(c[1, 1]), dict(cal.offset_depth_sd_mm)["round"])
+    assert back.offsets.depth_mm == cal.offsets.depth_mm
+    assert back.offsets.cov_mm2 == cal.offsets.cov_mm2
+    c = np.array(dict(cal.offsets.cov_mm2)["round"])
+    assert c[1, 1] > 0 and np.isclose(np.sqrt(c[1, 1]), rep["depth_sd_mm"])
     z = [p.t_mm[2] for p in poses]
-    assert back.distance_range_mm == pytest.approx((min(z), max(z)))
-    looks = back.band_looks()
+    assert back.offsets.distance_range_mm == pytest.approx((min(z), max(z)))
+    looks = back.band_looks().offsets
     assert looks.covers(min(z)) and looks.covers(max(z) * 1.04)
     assert not looks.covers(max(z) * 1.1) and not looks.covers(min(z) * 0.9)
     assert not replace(looks, distance_range_mm=None).covers(min(z))
-    lo, hi = dict(back.radius_range_mm)["round"]
+    lo, hi = dict(back.offsets.radius_range_mm)["round"]
     assert 0.4 < lo <= hi < 1.8            # the references' radii: 0.5-1.6 mm per edge
     assert looks.covers(min(z), "round", hi) and looks.covers(min(z), "chamfer", 0.0)
     assert not looks.covers(min(z), "round", hi + 0.5)
@@ -171,14 +172,13 @@ def test_offset_calibration_recovers_a_known_depth():
 
 
 def test_offset_of_a_calibrated_depth_follows_the_lean():
-    """``BandLooks.offset``: uniform offset minus depth x lean, per shape; 0 for a shape
+    """``DesignEdgeOffsets.offset``: uniform offset minus depth x lean, per shape; 0 for a shape
     without a calibration."""
-    lk = BandLooks(em.EdgeLook(), offset_mm=(("chamfer", 0.02),),
-                   offset_depth_mm=(("chamfer", 0.4),))
+    lk = DesignEdgeOffsets(offset_mm=(("chamfer", 0.02),), depth_mm=(("chamfer", 0.4),))
     lean = np.array([-0.3, 0.0, 0.2])
     assert np.allclose(lk.offset("chamfer", lean), 0.02 - 0.4 * lean)
     assert np.allclose(lk.offset("round", lean), 0.0)
-    assert lk.calibrated_offset and not BandLooks(em.EdgeLook()).calibrated_offset
+    assert lk and not DesignEdgeOffsets() and not BandLooks(em.EdgeLook()).offsets
 
 
 def test_view_lean_is_the_parallax_of_a_point_below_the_face():
@@ -219,9 +219,9 @@ def new_holder(tmp_path_factory):
     cv2.imwrite(str(d / "img.png"), img)
     cal = replace(_calibration(specular=1.3, shininess=33.0, wall_albedo=0.2,
                                pocket_level=0.1),
-                  offset_mm=(("chamfer", 0.02), ("round", -0.01)),
-                  offset_scatter_mm=(("chamfer", 0.03), ("round", 0.03)),
-                  distance_range_mm=(590.0, 630.0))
+                  offsets=DesignEdgeOffsets(offset_mm=(("chamfer", 0.02), ("round", -0.01)),
+                                            scatter_mm=(("chamfer", 0.03), ("round", 0.03)),
+                                            distance_range_mm=(590.0, 630.0)))
     save_edge_look(cal, d / "look.json")
     return pose, img, cal, d
 
@@ -249,16 +249,18 @@ def test_edge_look_changes_the_fitted_look(new_holder):
     assert "model floor" not in parts
     assert "model floor" in plain.quality.budget.to_dict()["parts"]
     bare = measure(img, CAM, HOLDER, method="dm+b", limits=limits,
-                   edge_look=replace(cal, offset_mm=(), offset_scatter_mm=()))
+                   edge_look=replace(cal, offsets=DesignEdgeOffsets()))
     assert "model floor" in bare.quality.budget.to_dict()["parts"]
     # offsets measured at other distances do not vouch for this one (the pose is at 614 mm),
     # nor on breaks unlike this one
     far = measure(img, CAM, HOLDER, method="dm+b", limits=limits,
-                  edge_look=replace(cal, distance_range_mm=(800.0, 900.0)))
+                  edge_look=replace(cal, offsets=replace(cal.offsets,
+                                                         distance_range_mm=(800.0, 900.0))))
     assert "model floor" in far.quality.budget.to_dict()["parts"]
     big = tuple((k, (3.0, 5.0)) for k in ("round", "chamfer"))
     worn_ref = measure(img, CAM, HOLDER, method="dm+b", limits=limits,
-                       edge_look=replace(cal, radius_range_mm=big))
+                       edge_look=replace(cal, offsets=replace(cal.offsets,
+                                                              radius_range_mm=big)))
     assert "model floor" in worn_ref.quality.budget.to_dict()["parts"]
     # and the JSON says why
     assert calib.estimate.info["band"].to_dict()["look"]["calibration_covers"] is True
@@ -290,8 +292,11 @@ def test_calibrated_depth_moves_the_pose_and_enters_the_budget(new_holder):
     start = measure(img, CAM, HOLDER, method="dm+").estimate
     base = cal.band_looks()
     shapes = ("round", "chamfer")
-    deep = replace(base, offset_depth_mm=tuple((k, 0.4) for k in shapes))
-    unsure = replace(deep, offset_cov=tuple((k, ((0.0, 0.0), (0.0, 0.04))) for k in shapes))
+    def with_offsets(looks, **kw):
+        return replace(looks, offsets=replace(looks.offsets, **kw))
+
+    deep = with_offsets(base, depth_mm=tuple((k, 0.4) for k in shapes))
+    unsure = with_offsets(deep, cov_mm2=tuple((k, ((0.0, 0.0), (0.0, 0.04))) for k in shapes))
     e0, e1, e2 = (refine_features(start, feats, CAM, HOLDER, edge_look=lk)
                   for lk in (base, deep, unsure))
     assert e0 and e1 and e2
@@ -303,8 +308,8 @@ def test_calibrated_depth_moves_the_pose_and_enters_the_budget(new_holder):
     # depth and a smaller offset move them alike), they widen the budget less than the same
     # variances taken apart
     a, b = 0.04, 0.2
-    apart = replace(deep, offset_cov=tuple((k, ((a * a, 0.0), (0.0, b * b))) for k in shapes))
-    joint = replace(deep, offset_cov=tuple((k, ((a * a, -a * b), (-a * b, b * b)))
+    apart = with_offsets(deep, cov_mm2=tuple((k, ((a * a, 0.0), (0.0, b * b))) for k in shapes))
+    joint = with_offsets(deep, cov_mm2=tuple((k, ((a * a, -a * b), (-a * b, b * b)))
                                            for k in shapes))
     m_apart, m_joint = (np.trace(refine_features(start, feats, CAM, HOLDER, edge_look=lk)
                                  .info["band"].cov_parts["edge model"][3:, 3:])
@@ -368,7 +373,7 @@ def test_version_1_look_file_reads_without_a_depth(tmp_path):
         d.pop(k, None)
     p = tmp_path / "v1.json"
     p.write_text(json.dumps(d))
-    assert load_edge_look(p).offset_depth_mm == ()
+    assert load_edge_look(p).offsets.depth_mm == ()
 
 
 def test_look_file_round_trip_and_unreadable_files(tmp_path):

@@ -931,12 +931,13 @@ def calibrate_edge_look_cmd(
         typer.echo(f"  {k}: {getattr(lk, k):.4g} +- {sd[k]:.2g}")
     typer.echo(f"  residual cost: {cal.report['cost_ratio_to_start']:.3f} of the nominal look's "
                "(shift 0)")
-    sd_off = dict(cal.offset_sd_mm)
-    depth, sd_depth = dict(cal.offset_depth_mm), dict(cal.offset_depth_sd_mm)
-    for shape, o in cal.offset_mm:
-        d = (f", depth {depth[shape]:+.3f} +- {sd_depth[shape]:.3f} mm below the face"
+    offs = cal.offsets
+    depth = dict(offs.depth_mm)
+    for shape, o in offs.offset_mm:
+        sd_o, sd_d = offs.sd(shape)
+        d = (f", depth {depth[shape]:+.3f} +- {sd_d:.3f} mm below the face"
              if shape in depth else "")
-        typer.echo(f"  design-edge offset ({shape}): {o:+.4f} +- {sd_off[shape]:.4f} mm{d}")
+        typer.echo(f"  design-edge offset ({shape}): {o:+.4f} +- {sd_o:.4f} mm{d}")
     for name, c in check.items():
         typer.echo(f"  {name} look at the known poses: design-edge shift {c['mean_px']:+.3f} px "
                    f"({c['mean_mm']:+.4f} mm), sd of image means {c['sd_of_image_means_px']:.3f}"

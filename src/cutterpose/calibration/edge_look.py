@@ -91,6 +91,7 @@ from ..image.edge_band import (
     CAL_RADII_MM,
     BandLooks,
     BandProfiles,
+    DesignEdgeOffsets,
     fit_band,
     profile_costs,
     sample_band,
@@ -300,24 +301,8 @@ class EdgeLookCalibration:
     cov_image: tuple[tuple[float, ...], ...]
     blurs_px: tuple[float, ...] = BLURS_PX
     report: dict = field(default_factory=dict, compare=False, hash=False)
-    #: per shape, the design-edge offset (mm, outwards) the look still leaves at the known
-    #: poses (:func:`calibrate_offsets`), and its 1-sigma
-    offset_mm: tuple[tuple[str, float], ...] = ()
-    offset_sd_mm: tuple[tuple[str, float], ...] = ()
-    #: per shape, the offsets' scatter over the reference images (1 sigma, mm): how far one
-    #: image's design edge may be off after the calibration (the budget's edge-model term)
-    offset_scatter_mm: tuple[tuple[str, float], ...] = ()
-    #: per shape, the depth (mm) below the face at which the located design edge behaves (the
-    #: offset is ``delta - depth tan(theta)``, :func:`calibrate_offsets`), and its 1-sigma
-    offset_depth_mm: tuple[tuple[str, float], ...] = ()
-    offset_depth_sd_mm: tuple[tuple[str, float], ...] = ()
-    #: per shape, the covariance (mm^2) of (offset, depth), cluster-robust over the images
-    #: (the depth's row and column 0 when it was not kept)
-    offset_cov: tuple[tuple[str, tuple[tuple[float, float], tuple[float, float]]], ...] = ()
-    #: the depths (mm, Z of the holder) of the reference poses the offsets were measured at
-    distance_range_mm: tuple[float, float] | None = None
-    #: per shape, the range of the reference images' median fitted radius (mm)
-    radius_range_mm: tuple[tuple[str, tuple[float, float]], ...] = ()
+    #: where the look still puts the design edge at the known poses (:func:`calibrate_offsets`)
+    offsets: DesignEdgeOffsets = DesignEdgeOffsets()
 
     def sd(self, per_image: bool = False) -> dict:
         """1-sigma of each fitted parameter in its natural unit (delta method through the log
@@ -349,16 +334,8 @@ class EdgeLookCalibration:
         offsets and their scatter; with ``variant_axes`` > 0 also :meth:`variants` for the
         budget (not by default: the offsets' measured scatter stands for what the look leaves,
         module doc)."""
-        cov = dict(self.offset_cov)
-        # with the joint covariance the budget propagates the offset's own sd through it;
-        # a file without it (version 1) folds the sd into the scatter
-        scatter = tuple((k, float(v if k in cov else
-                                  np.hypot(v, dict(self.offset_sd_mm).get(k, 0.0))))
-                        for k, v in self.offset_scatter_mm)
         return BandLooks(self.look, self.variants(variant_axes) if variant_axes else (),
-                         tuple(self.blurs_px), tuple(self.offset_mm), scatter,
-                         tuple(self.offset_depth_mm), tuple(self.offset_cov),
-                         self.distance_range_mm, tuple(self.radius_range_mm))
+                         tuple(self.blurs_px), self.offsets)
 
     def to_dict(self) -> dict:
         lk = self.look
@@ -372,16 +349,7 @@ class EdgeLookCalibration:
                 "cov_mean": [list(r) for r in self.cov_mean],
                 "cov_image": [list(r) for r in self.cov_image],
                 "sd": self.sd(), "sd_per_image": self.sd(per_image=True),
-                "design_edge_offset_mm": dict(self.offset_mm),
-                "design_edge_offset_sd_mm": dict(self.offset_sd_mm),
-                "design_edge_offset_scatter_mm": dict(self.offset_scatter_mm),
-                "design_edge_depth_mm": dict(self.offset_depth_mm),
-                "design_edge_depth_sd_mm": dict(self.offset_depth_sd_mm),
-                "design_edge_offset_depth_cov_mm2": {k: [list(r) for r in v]
-                                                     for k, v in self.offset_cov},
-                "distance_range_mm": (list(self.distance_range_mm)
-                                      if self.distance_range_mm else None),
-                "radius_range_mm": {k: list(v) for k, v in self.radius_range_mm},
+                **_offsets_dict(self.offsets),
                 "report": self.report}
 
 
@@ -628,7 +596,7 @@ def calibrate_offsets(refs: list[ReferenceImage], cal: EdgeLookCalibration,
     The offsets' scatter (the budget's edge-model term): the standard deviation over the
     images of the uniform offset that zeroes each one's Z error with ``d`` applied.
     """
-    looks = replace(cal.band_looks(), offset_mm=(), offset_depth_mm=())
+    looks = replace(cal.band_looks(), offsets=DesignEdgeOffsets())
     per: dict = {}
     radii: dict = {}
     z = [float(r.t_cam_holder_mm[2]) for r in refs]
@@ -645,10 +613,9 @@ def calibrate_offsets(refs: list[ReferenceImage], cal: EdgeLookCalibration,
             continue
         per.setdefault(f.best.look.shape, []).append(
             (e0, (e1 - e0) / OFFSET_STEP_MM, (e2 - e0) / DEPTH_STEP_MM))
-        r = f.best.radius_mm[ref.profiles.valid & np.isfinite(f.best.radius_mm)]
-        if len(r):
-            radii.setdefault(f.best.look.shape, []).append(float(np.median(r)))
-    off, sd_off, scatter, depth, sd_depth, cov_od, rep = [], [], [], [], [], [], {}
+        if np.isfinite(f.radius_median_mm):
+            radii.setdefault(f.best.look.shape, []).append(f.radius_median_mm)
+    off, scatter, depth, cov_od, rep = [], [], [], [], {}
     for shape, rows in sorted(per.items()):
         n = len(rows)
         if n < MIN_OFFSET_IMAGES:
@@ -666,18 +633,17 @@ def calibrate_offsets(refs: list[ReferenceImage], cal: EdgeLookCalibration,
         each = -(e[:, 5] + A[:, 5, 1] * d) / A[:, 5, 0]
         spread = float(np.std(each, ddof=1))
         off.append((shape, delta))
-        sd_off.append((shape, float(math.sqrt(max(cov[0, 0], 0.0)))))
         scatter.append((shape, spread))
         c2 = np.zeros((2, 2))
         c2[:k, :k] = cov
         cov_od.append((shape, tuple(tuple(float(v) for v in r) for r in c2)))
         if k > 1:
             depth.append((shape, d))
-            sd_depth.append((shape, float(math.sqrt(max(cov[1, 1], 0.0)))))
         after = e + A[..., :k] @ p
-        rep[shape] = {"images": n, "offset_mm": delta, "sd_mm": sd_off[-1][1],
+        sds = np.sqrt(np.clip(np.diag(c2), 0.0, None))
+        rep[shape] = {"images": n, "offset_mm": delta, "sd_mm": float(sds[0]),
                       "depth_mm": d if k > 1 else None,
-                      "depth_sd_mm": sd_depth[-1][1] if k > 1 else None,
+                      "depth_sd_mm": float(sds[1]) if k > 1 else None,
                       "loo_error": {("uniform" if j == 1 else "uniform+depth"): float(v)
                                     for j, v in cv.items()},
                       "scatter_mm": spread,
@@ -687,13 +653,10 @@ def calibrate_offsets(refs: list[ReferenceImage], cal: EdgeLookCalibration,
                       "per_image_offset_mm": [float(v) for v in each]}
     report = dict(cal.report)
     report["design_edge_offset"] = rep
-    return replace(cal, offset_mm=tuple(off), offset_sd_mm=tuple(sd_off),
-                   offset_scatter_mm=tuple(scatter), offset_depth_mm=tuple(depth),
-                   offset_depth_sd_mm=tuple(sd_depth), offset_cov=tuple(cov_od),
-                   report=report,
-                   distance_range_mm=(float(min(z)), float(max(z))) if off else None,
-                   radius_range_mm=tuple((k, (min(radii[k]), max(radii[k])))
-                                         for k, _ in off if k in radii))
+    return replace(cal, report=report, offsets=DesignEdgeOffsets(
+        tuple(off), tuple(scatter), tuple(depth), tuple(cov_od),
+        (float(min(z)), float(max(z))) if off else None,
+        tuple((k, (min(radii[k]), max(radii[k]))) for k, _ in off if k in radii)))
 
 
 def _offset_weights() -> np.ndarray:
@@ -822,13 +785,37 @@ def edge_look_from_dict(d, where: str = "edge look") -> EdgeLookCalibration:
                                _matrix(d, "cov_image", n, where),
                                tuple(float(b) for b in blurs),
                                d.get("report") if isinstance(d.get("report"), dict) else {},
-                               _offsets(d, "design_edge_offset_mm", where),
-                               _offsets(d, "design_edge_offset_sd_mm", where),
-                               _offsets(d, "design_edge_offset_scatter_mm", where),
-                               _offsets(d, "design_edge_depth_mm", where, MAX_DEPTH_MM),
-                               _offsets(d, "design_edge_depth_sd_mm", where, MAX_DEPTH_MM),
-                               _offset_covariances(d, where), _distance_range(d, where),
-                               _radius_ranges(d, where))
+                               _offsets_from_dict(d, where))
+
+
+def _offsets_dict(o: DesignEdgeOffsets) -> dict:
+    """The file's keys of :class:`DesignEdgeOffsets` (the sds derived from the covariance, for
+    the reader)."""
+    sd = {k: o.sd(k) for k, _ in o.cov_mm2}
+    return {"design_edge_offset_mm": dict(o.offset_mm),
+            "design_edge_offset_sd_mm": {k: v[0] for k, v in sd.items()},
+            "design_edge_offset_scatter_mm": dict(o.scatter_mm),
+            "design_edge_depth_mm": dict(o.depth_mm),
+            "design_edge_depth_sd_mm": {k: sd[k][1] for k, _ in o.depth_mm if k in sd},
+            "design_edge_offset_depth_cov_mm2": {k: [list(r) for r in v] for k, v in o.cov_mm2},
+            "distance_range_mm": list(o.distance_range_mm) if o.distance_range_mm else None,
+            "radius_range_mm": {k: list(v) for k, v in o.radius_range_mm}}
+
+
+def _offsets_from_dict(d: dict, where: str) -> DesignEdgeOffsets:
+    """:class:`DesignEdgeOffsets` from a file. Without the joint covariance (version 1) it is
+    the offsets' and depths' sds, uncorrelated (the budget then is what version 1's was: a
+    uniform shift by the offset's sd adds to the scatter's in quadrature)."""
+    cov = _offset_covariances(d, where)
+    if not cov:
+        sd_o = dict(_offsets(d, "design_edge_offset_sd_mm", where))
+        sd_d = dict(_offsets(d, "design_edge_depth_sd_mm", where, MAX_DEPTH_MM))
+        cov = tuple((k, ((sd_o.get(k, 0.0) ** 2, 0.0), (0.0, sd_d.get(k, 0.0) ** 2)))
+                    for k in sorted(set(sd_o) | set(sd_d)))
+    return DesignEdgeOffsets(_offsets(d, "design_edge_offset_mm", where),
+                             _offsets(d, "design_edge_offset_scatter_mm", where),
+                             _offsets(d, "design_edge_depth_mm", where, MAX_DEPTH_MM), cov,
+                             _distance_range(d, where), _radius_ranges(d, where))
 
 
 def _radius_ranges(d: dict, where: str) -> tuple:

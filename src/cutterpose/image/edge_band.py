@@ -47,6 +47,7 @@ References:
 
 from __future__ import annotations
 
+import math
 import warnings
 from dataclasses import dataclass, field, replace
 
@@ -59,8 +60,9 @@ from ..geometry.camera import Camera
 from ..geometry.holder import Holder
 from . import edge_model as em
 
-__all__ = ["BandProfiles", "BandFit", "BandLooks", "sample_band", "fit_band", "band_looks",
-           "profile_costs", "model_grid_px", "view_lean", "CAL_RADII_MM"]
+__all__ = ["BandProfiles", "BandFit", "BandLooks", "DesignEdgeOffsets", "sample_band",
+           "fit_band", "band_looks", "profile_costs", "model_grid_px", "view_lean",
+           "CAL_RADII_MM"]
 
 #: the radii the coarse scan tries (mm) and the fine step
 COARSE_RADII_MM = np.array([0.0, 0.25, 0.5, 0.75, 1.0, 1.25, 1.5, 2.0, 2.5, 3.0, 3.5, 4.0, 4.5,
@@ -98,41 +100,45 @@ RADIUS_MARGIN_MM = 0.25
 
 
 @dataclass(frozen=True)
-class BandLooks:
-    """Photometric candidates calibrated in the cell (:mod:`cutterpose.calibration.edge_look`)
-    in place of the generic :func:`band_looks`.
+class DesignEdgeOffsets:
+    """Where a look calibrated in the cell still puts the design edge, measured at the known
+    poses of its reference images (:func:`cutterpose.calibration.edge_look.calibrate_offsets`),
+    per shape (``(shape, value)`` pairs).
 
-    ``look``: the calibrated photometry (its ``shape`` is replaced by each shape fitted; the
-    shape is still chosen per image by the profiles' cost, the blur among ``blurs_px``);
-    ``variants``: looks round it (the calibration's uncertainty) that are never chosen, only
-    fitted for the error budget's edge-model term, each weighted by its relative likelihood as
-    the generic plausible looks are. ``offset_mm``: per shape, the design-edge offset the look
-    still leaves at the known poses (mm outwards in the face plane), added to every fitted
-    shift of that shape (times the segment's px per mm); ``offset_depth_mm``: per shape, the
-    depth ``d`` below the face at which the located design edge behaves (mm): a point ``d``
-    below the face images like the face point ``d tan(theta)`` outwards (``tan(theta)`` the
-    segment's :func:`view_lean`), so the offset is ``offset_mm - d tan(theta)``;
-    ``offset_scatter_mm``: per shape, how far one image's design edge may still be off (1 sigma,
-    mm: the offset's scatter over the reference images), the budget's edge-model term, with
-    ``offset_cov`` (the calibrated offset's and depth's own uncertainty).
+    ``offset_mm``: the uniform outward offset (mm in the face plane) and ``depth_mm`` the depth
+    ``d`` below the face at which the located design edge behaves: a point ``d`` below the face
+    images like the face point ``d tan(theta)`` outwards (``tan(theta)`` the segment's
+    :func:`view_lean`), so a segment's offset is ``offset_mm - d tan(theta)`` (:meth:`offset`);
+    ``scatter_mm``: how far one image's design edge may still be off (1 sigma, the offsets'
+    scatter over the reference images); ``cov_mm2``: the covariance of the calibrated (offset,
+    depth) (their own uncertainty, correlated through the segments' mean lean);
+    ``distance_range_mm`` and ``radius_range_mm``: the reference poses' depths and, per shape,
+    the reference breaks' median radii: where the measured scatter vouches (:meth:`covers`).
+    A falsy instance: no calibrated offsets.
     """
 
-    look: em.EdgeLook
-    variants: tuple[em.EdgeLook, ...] = ()
-    blurs_px: tuple[float, ...] = BLURS_PX
     offset_mm: tuple[tuple[str, float], ...] = ()
-    offset_scatter_mm: tuple[tuple[str, float], ...] = ()
-    offset_depth_mm: tuple[tuple[str, float], ...] = ()
-    #: per shape, the covariance (mm^2) of the calibrated (offset, depth): the budget's
-    #: edge-model term propagates it jointly (the two are correlated through the segments'
-    #: mean lean); without it ``offset_scatter_mm`` carries the offset's sd
-    offset_cov: tuple[tuple[str, tuple[tuple[float, float], tuple[float, float]]], ...] = ()
-    #: the depths (Z of the holder, mm) of the reference poses the offsets were measured at
-    #: (None: not known); see :meth:`covers`
+    scatter_mm: tuple[tuple[str, float], ...] = ()
+    depth_mm: tuple[tuple[str, float], ...] = ()
+    cov_mm2: tuple[tuple[str, tuple[tuple[float, float], tuple[float, float]]], ...] = ()
     distance_range_mm: tuple[float, float] | None = None
-    #: per shape, the range of the reference images' median fitted radius (mm); see
-    #: :meth:`covers`
     radius_range_mm: tuple[tuple[str, tuple[float, float]], ...] = ()
+
+    def __bool__(self) -> bool:
+        return bool(self.offset_mm or self.depth_mm)
+
+    def offset(self, shape: str, lean=0.0):
+        """The calibrated design-edge offset of ``shape`` (mm outwards; 0 when not calibrated)
+        at segments of view lean ``lean`` (:func:`view_lean`; scalar or (S,))."""
+        return (dict(self.offset_mm).get(shape, 0.0)
+                - dict(self.depth_mm).get(shape, 0.0) * np.asarray(lean, float))
+
+    def sd(self, shape: str) -> tuple[float, float]:
+        """1-sigma of the calibrated (offset, depth) of ``shape`` (mm; 0 when not calibrated)."""
+        c = dict(self.cov_mm2).get(shape)
+        if c is None:
+            return 0.0, 0.0
+        return (math.sqrt(max(c[0][0], 0.0)), math.sqrt(max(c[1][1], 0.0)))
 
     def covers(self, z_mm: float, shape: str | None = None,
                radius_mm: float | None = None) -> bool:
@@ -152,18 +158,27 @@ class BandLooks:
             return True
         return rr[0] - RADIUS_MARGIN_MM <= radius_mm <= rr[1] + RADIUS_MARGIN_MM
 
+
+@dataclass(frozen=True)
+class BandLooks:
+    """Photometric candidates calibrated in the cell (:mod:`cutterpose.calibration.edge_look`)
+    in place of the generic :func:`band_looks`.
+
+    ``look``: the calibrated photometry (its ``shape`` is replaced by each shape fitted; the
+    shape is still chosen per image by the profiles' cost, the blur among ``blurs_px``);
+    ``variants``: looks round it (the calibration's uncertainty) that are never chosen, only
+    fitted for the error budget's edge-model term, each weighted by its relative likelihood as
+    the generic plausible looks are; ``offsets``: where the look still puts the design edge
+    (:class:`DesignEdgeOffsets`), added to every fitted shift and in the budget.
+    """
+
+    look: em.EdgeLook
+    variants: tuple[em.EdgeLook, ...] = ()
+    blurs_px: tuple[float, ...] = BLURS_PX
+    offsets: DesignEdgeOffsets = DesignEdgeOffsets()
+
     def for_shape(self, shape: str) -> em.EdgeLook:
         return replace(self.look, shape=shape, profile_sigma_px=0.0)
-
-    def offset(self, shape: str, lean=0.0):
-        """The calibrated design-edge offset of ``shape`` (mm outwards; 0 when not calibrated)
-        at segments of view lean ``lean`` (:func:`view_lean`; scalar or (S,))."""
-        return (dict(self.offset_mm).get(shape, 0.0)
-                - dict(self.offset_depth_mm).get(shape, 0.0) * np.asarray(lean, float))
-
-    @property
-    def calibrated_offset(self) -> bool:
-        return bool(self.offset_mm or self.offset_depth_mm)
 
 
 def band_looks(shapes=("round", "chamfer")) -> list[em.EdgeLook]:
@@ -359,6 +374,12 @@ class BandFit:
     best: LookFit
     plausible: list = field(default_factory=list)
     profiles: BandProfiles | None = None
+
+    @property
+    def radius_median_mm(self) -> float:
+        """The chosen look's median radius over the sampled segments (mm; NaN without any)."""
+        r = self.best.radius_mm[self.profiles.valid & np.isfinite(self.best.radius_mm)]
+        return float(np.median(r)) if len(r) else math.nan
 
     def design_points_px(self, lf: LookFit | None = None) -> np.ndarray:
         lf = lf or self.best
@@ -660,10 +681,10 @@ def fit_band(bp: BandProfiles, camera: Camera, holder: Holder, R_cam_holder, t_c
 
 
 def _offset(fit: BandFit, looks: BandLooks | None, view: em.EdgeView) -> BandFit:
-    """The calibrated design-edge offsets (:meth:`BandLooks.offset`, at each segment's
+    """The calibrated design-edge offsets (:meth:`DesignEdgeOffsets.offset`, at each segment's
     :func:`view_lean` in ``view``) added to every look's shifts (none without a
     calibration)."""
-    if looks is None or not looks.calibrated_offset:
+    if looks is None or not looks.offsets:
         return fit
     bp = fit.profiles
     px = bp.px_per_mm
@@ -674,7 +695,7 @@ def _offset(fit: BandFit, looks: BandLooks | None, view: em.EdgeView) -> BandFit
         # segments (only its look is used): left as it is
         if len(lf.shift_px) != len(px):
             return lf
-        return lf.moved(looks.offset(lf.look.shape, lean), px)
+        return lf.moved(looks.offsets.offset(lf.look.shape, lean), px)
 
     fit.best = moved(fit.best)
     fit.plausible = [moved(lf) for lf in fit.plausible]

@@ -28,7 +28,7 @@ The error budget (:mod:`cutterpose.budget`) gets three parts:
   :data:`SHIFT_FLOOR_MM` (the profile model's systematic error that no alternative look
   shows: a uniform shift is what the pose cannot tell from depth). Not with a calibrated look
   whose offsets were measured at known poses at this distance and on breaks like this one
-  (``BandLooks.covers``): their
+  (``DesignEdgeOffsets.covers``): their
   scatter (in ``edge model``) is that error measured, where the floor guesses it (counting both
   would count it twice); farther or nearer than the reference poses the floor stays.
 
@@ -94,13 +94,12 @@ class BandPose:
     calibrated: bool = False      # the look was calibrated in the cell (BandLooks)
     #: the calibration's measured offset scatter stands for the model floor here (it has an
     #: offset for this shape, and its reference poses and breaks cover this distance and
-    #: radius, ``BandLooks.covers``); None without a calibration
+    #: radius, ``DesignEdgeOffsets.covers``); None without a calibration
     calibration_covers: bool | None = None
 
     @property
     def radius_mm(self) -> float:
-        v = self.fit.profiles.valid
-        return float(np.median(self.fit.best.radius_mm[v])) if v.any() else math.nan
+        return self.fit.radius_median_mm
 
     def to_dict(self) -> dict:
         b = self.fit.best
@@ -279,8 +278,10 @@ def measure_band(image, camera: Camera, holder: Holder, start: PoseEstimate,
         """The pose change for a uniform outward shift of every design point (mm)."""
         return design_pose(fit, fit.best.moved(shift_mm, bp.px_per_mm), K, dof, valid) - dof
 
-    sc = dict(looks.offset_scatter_mm).get(fit.best.look.shape) if looks is not None else None
-    if looks is not None:
+    off = looks.offsets if looks is not None else None
+    shape = fit.best.look.shape
+    sc = dict(off.scatter_mm).get(shape) if off is not None else None
+    if off is not None:
         # a calibrated look: the scatter of the design-edge offset over the reference images
         # (measured at their known poses) is this image's remaining look error
         if sc:
@@ -289,7 +290,7 @@ def measure_band(image, camera: Camera, holder: Holder, start: PoseEstimate,
         # and the calibrated offset's and depth's own uncertainty, jointly (they correlate
         # through the segments' mean lean): the pose change along each main axis of their
         # covariance, each segment moved by offset - depth x its view lean
-        cov_od = dict(looks.offset_cov).get(fit.best.look.shape)
+        cov_od = dict(off.cov_mm2).get(shape)
         if cov_od is not None:
             lean = view_lean(em.edge_views(rotation_from_euler_deg(*dof[:3]), dof[3:], K,
                                            holder), bp.edge, bp.frac)
@@ -301,10 +302,9 @@ def measure_band(image, camera: Camera, holder: Holder, start: PoseEstimate,
                                       valid) - dof
                     cov_model = cov_model + np.outer(d_c, d_c)
     parts = {"noise": cov_noise, "edge model": cov_model}
-    r_med = fit.best.radius_mm[valid]
-    covers = None if looks is None else bool(
-        sc and looks.covers(float(dof[5]), fit.best.look.shape,
-                            float(np.median(r_med)) if len(r_med) else None))
+    r_med = fit.radius_median_mm
+    covers = None if off is None else bool(
+        sc and off.covers(float(dof[5]), shape, r_med if np.isfinite(r_med) else None))
     if not covers:
         # a uniform outward shift of the design edge by the model floor: what no look shows;
         # a calibration that measured the offsets' scatter at known poses at this distance
