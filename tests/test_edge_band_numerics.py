@@ -199,7 +199,7 @@ def test_edge_noise_cov_predicts_the_scatter_of_fitted_poses(sd_edge_px):
     shared by the four segments of each edge (0.3 px: what the residuals of worn holders show):
     the covariance of :func:`edge_noise_cov`, computed from each fit's own residuals, matches
     the poses' scatter over repeated fits (median ratio of the predicted to the observed std
-    in 0.75-1.33 on every DOF), where the independent-segment formula ``s^2 (J^T W J)^-1``
+    in 0.75-1.33 on every DOF), where the independent-segment formula ``chi^2 (J^T W J)^-1``
     falls short with the shared part (fails if the edge term is dropped)."""
     from cutterpose.solvers.edge_band import _jacobian, edge_noise_cov, fit_pose_design_points
 
@@ -212,11 +212,13 @@ def test_edge_noise_cov_predicts_the_scatter_of_fitted_poses(sd_edge_px):
     for _ in range(150):
         err = rng.normal(0, 0.15, len(X)) + rng.normal(0, sd_edge_px, 20)[edge]
         p = q + err[:, None] * n
-        dof, info, r, w, s = fit_pose_design_points(p, n, X, K, dof0, sd)
-        J = _jacobian(dof, X, n, K) / sd[:, None]
+        dof, J, r, w, s = fit_pose_design_points(p, n, X, K, dof0, sd)
+        assert np.allclose(J, _jacobian(dof, X, n, K) / sd[:, None])
         poses.append(dof)
         pred.append(np.sqrt(np.diag(edge_noise_cov(J, r / sd, w, edge))))
-        pred_indep.append(np.sqrt(np.diag(max(s, 1.0) ** 2 * np.linalg.inv(info))))
+        # every segment its own: the weighted fit's chi^2 (J^T W J)^-1
+        pred_indep.append(np.sqrt(np.diag(max(s, 1.0) ** 2
+                                          * np.linalg.inv(J.T @ (w[:, None] * J)))))
     observed = np.std(np.array(poses), axis=0, ddof=1)
     ratio = np.median(np.array(pred), axis=0) / observed
     assert np.all((ratio > 0.75) & (ratio < 1.33)), ratio

@@ -166,8 +166,9 @@ def fit_pose_design_points(points_ideal_px, normals, points_holder_mm, K, dof0,
 
     Returns
     -------
-    dof, info, residuals_px, weights, chi : ``info = J^T W J`` of the whitened residuals
-        (1 / unit^2), ``chi`` the root of the weighted chi-square per degree of freedom.
+    dof, J, residuals_px, weights, chi : ``J`` (S, 6) the whitened residuals' Jacobian at
+        the solution (not weighted: :func:`edge_noise_cov` takes it with the soft-L1
+        ``weights``), ``chi`` the root of the weighted chi-square per degree of freedom.
     """
     p = np.asarray(points_ideal_px, float)
     n = np.asarray(normals, float)
@@ -187,11 +188,11 @@ def fit_pose_design_points(points_ideal_px, normals, points_holder_mm, K, dof0,
                         x_scale=np.array([0.01, 0.01, 0.01, 0.1, 0.1, 0.5]), method="trf")
     z = sol.fun
     w = 1.0 / np.sqrt(1.0 + (z / f_scale) ** 2)
-    J = sol.jac
-    info = J.T @ (w[:, None] * J)
+    # not sol.jac: with a robust loss its rows carry the loss's curvature (w^1.5 for soft-L1)
+    J = jac(sol.x)
     dof_n = max(int(np.count_nonzero(w > 0.5)) - 6, 1)
     chi = math.sqrt(float(np.sum(w * z ** 2) / dof_n))
-    return sol.x, info, z * sd, w, chi
+    return sol.x, J, z * sd, w, chi
 
 
 def edge_noise_cov(J, z, w, edge) -> np.ndarray:
@@ -312,7 +313,7 @@ def measure_band(image, camera: Camera, holder: Holder, start: PoseEstimate,
                     f"of {len(valid)} edge segments only: edges hidden or featureless")
             p = fit.design_points_px()[valid]
             sd = _sd(fit.best)[valid]
-            new, _info, r, w, s = fit_pose_design_points(
+            new, J, r, w, s = fit_pose_design_points(
                 p, bp.normals_ideal[valid], bp.points_holder_mm[valid], K, dof, sd)
             dof = new
     except CutterposeError as e:
@@ -320,7 +321,6 @@ def measure_band(image, camera: Camera, holder: Holder, start: PoseEstimate,
     try:
         # the segments' variances know the pixel noise; a larger scatter scales them up, and
         # what the segments of one edge share counts once per edge
-        J = _jacobian(dof, bp.points_holder_mm[valid], bp.normals_ideal[valid], K) / sd[:, None]
         cov_noise = edge_noise_cov(J, r / sd, w, bp.edge[valid])
     except np.linalg.LinAlgError:
         cov_noise = np.full((6, 6), np.inf)
