@@ -168,29 +168,17 @@ def test_pose_jacobian_is_the_residuals_derivative():
         assert np.abs(_jacobian(dof, X, n, K) - num).max() < 1e-5 * np.abs(num).max()
 
 
-def _design_segments(dof, K, per_edge=4):
-    """Segment centres on the design edges (holder, Z = 0), their projections and outward
-    image normals at the pose ``dof`` (the band fit's geometry without an image)."""
-    from cutterpose.solvers.edge_band import _residuals  # noqa: F401  (same projection)
+def _design_segments(dof, K):
+    """Segment centres on the design edges, their projections and outward image normals at the
+    pose ``dof`` (the band fit's geometry without an image): benchmarks/band_noise_sim.py's."""
+    import importlib.util
+    from pathlib import Path
 
-    h = default_holder()
-    c = np.asarray(h.corners_mm, float)
-    nxt = np.roll(c, -1, axis=0)
-    f = (np.arange(per_edge) + 0.5) / per_edge
-    P = (c[:, None, :] + f[None, :, None] * (nxt - c)[:, None, :]).reshape(-1, 2)
-    edge = np.repeat(np.arange(len(c)), per_edge)
-    X = np.column_stack([P, np.zeros(len(P))])
-    R = rotation_from_euler_deg(*dof[:3])
-
-    def proj(Q):
-        Xc = Q @ R.T + dof[3:]
-        return (Xc[:, :2] / Xc[:, 2:]) @ K[:2, :2].T + K[:2, 2]
-
-    q = proj(X)
-    o = np.column_stack([h.edge_normals[edge], np.zeros(len(P))])
-    n = proj(X + o) - q
-    n /= np.linalg.norm(n, axis=1, keepdims=True)
-    return X, q, n, edge
+    path = Path(__file__).resolve().parents[1] / "benchmarks" / "band_noise_sim.py"
+    spec = importlib.util.spec_from_file_location("band_noise_sim", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod.segments(dof, K)
 
 
 @pytest.mark.parametrize("sd_edge_px", [0.0, 0.3])
