@@ -81,6 +81,10 @@ def test_band_reported_in_json(chamfered):
     parts = d["quality"]["budget"]["parts"]
     assert set(parts) == {"noise", "edge model", "model floor"}
     assert all(p["position_3sigma_mm"] >= 0 for p in parts.values())
+    # the residuals' split (a clean analytic render: a few tenths of a px at most)
+    eb = d["edge_band"]
+    assert 0 < eb["residual_within_edge_px"] < 0.5
+    assert 0 <= eb["residual_shared_per_edge_px"] < 0.5
 
 
 def test_dm_plus_b_without_an_image_says_so():

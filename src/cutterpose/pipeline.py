@@ -196,7 +196,9 @@ class Measurement:
             d = band.to_dict()
             lines.append(f"edge break: {d['shape']}, radius {d['radius_median_mm']:.2f} mm "
                          f"(median of {d['segments_valid']} segments, {d['segments_used']} "
-                         "used for the pose)")
+                         "used for the pose); residual along the normals "
+                         f"{d['residual_within_edge_px']:.2f} px within an edge, "
+                         f"{d['residual_shared_per_edge_px']:.2f} px shared per edge")
             if band.calibration_covers is False:
                 lines.append("edge look: calibrated in the cell on other distances, breaks or "
                              "shapes than this one: the budget keeps the generic model floor")

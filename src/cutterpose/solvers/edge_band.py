@@ -61,7 +61,7 @@ from ..image.edge_band import BandFit, BandLooks, fit_band, sample_band, view_le
 from .estimate import PoseEstimate
 
 __all__ = ["BandPose", "as_band_looks", "design_pose", "edge_noise_cov", "fit_pose_design_points",
-           "measure_band", "refine_features", "solve", "SHIFT_FLOOR_MM"]
+           "measure_band", "refine_features", "solve", "variance_components", "SHIFT_FLOOR_MM"]
 
 #: the band model's systematic uncertainty as a uniform outward shift of the design edge (mm
 #: in the face plane, 1 sigma): on the development pbr sets at ~4 px/mm the design edge of
@@ -98,6 +98,11 @@ class BandPose:
     #: offset for this shape, and its reference poses and breaks cover this distance and
     #: radius, ``DesignEdgeOffsets.covers``); None without a calibration
     calibration_covers: bool | None = None
+    #: the weighted residuals' spread (px, 1 sigma) within an edge and of a part each edge's
+    #: segments share (:func:`variance_components`): a large shared part says the edges
+    #: disagree as wholes (a look or a break that the model does not fit on some edges)
+    residual_within_edge_px: float = math.nan
+    residual_shared_per_edge_px: float = math.nan
 
     @property
     def radius_mm(self) -> float:
@@ -112,6 +117,8 @@ class BandPose:
                                           for r, ok in zip(b.radius_mm, v)],
                 "segments_used": int(np.count_nonzero(self.weights > 0.5)),
                 "segments_valid": int(v.sum()), "residual_chi": round(self.chi, 3),
+                "residual_within_edge_px": round(self.residual_within_edge_px, 3),
+                "residual_shared_per_edge_px": round(self.residual_shared_per_edge_px, 3),
                 "plausible_looks": len(self.fit.plausible), "passes": self.passes,
                 "look": {"calibrated": self.calibrated,
                          "calibration_covers": self.calibration_covers,
@@ -195,6 +202,32 @@ def fit_pose_design_points(points_ideal_px, normals, points_holder_mm, K, dof0,
     return sol.x, J, z * sd, w, chi
 
 
+def variance_components(e, edge, n_params: int = 6) -> tuple[float, float]:
+    """``(s_w^2, s_u^2)``: the variance of residuals ``e`` (S,) within a group (``edge`` (S,))
+    and that of a part shared by a group, from the one-way ANOVA of a fit's residuals
+    (:func:`edge_noise_cov`): ``s_w^2`` the pooled within-group mean square, ``s_u^2 =
+    max(0, (MS_b - s_w^2) / n_0)`` with ``MS_b`` the groups' mean squares about zero on
+    ``E - n_params`` degrees of freedom (the fit's parameters absorb group-level patterns) and
+    ``n_0 = (N - sum n_e^2 / N) / (E - 1)``. ``s_u^2 = 0`` with ``n_params + 1`` groups or
+    fewer.
+
+    References:
+        Searle, Casella, McCulloch, *Variance Components* (1992), ch. 3.
+    """
+    e = np.asarray(e, float)
+    labels, idx = np.unique(np.asarray(edge), return_inverse=True)
+    E, N = len(labels), len(e)
+    n_e = np.bincount(idx, minlength=E).astype(float)
+    mean_e = np.bincount(idx, weights=e, minlength=E) / n_e
+    s_w2 = float(np.sum((e - mean_e[idx]) ** 2)) / max(N - E, 1)
+    s_u2 = 0.0
+    if E > n_params + 1 and N > E:
+        ms_b = float(np.sum(n_e * mean_e ** 2)) / (E - n_params)
+        n0 = (N - float(np.sum(n_e ** 2)) / N) / (E - 1)
+        s_u2 = max(0.0, (ms_b - s_w2) / max(n0, 1.0))
+    return s_w2, s_u2
+
+
 def edge_noise_cov(J, z, w, edge) -> np.ndarray:
     """(6, 6) covariance of the pose fitted to design-edge points whose errors share a part
     per edge (variance components: a random effect per edge).
@@ -224,17 +257,9 @@ def edge_noise_cov(J, z, w, edge) -> np.ndarray:
     """
     sw = np.sqrt(np.asarray(w, float))
     Jt = sw[:, None] * np.asarray(J, float)
-    e = sw * np.asarray(z, float)
     labels, idx = np.unique(np.asarray(edge), return_inverse=True)
-    E, N = len(labels), len(e)
-    n_e = np.bincount(idx, minlength=E).astype(float)
-    mean_e = np.bincount(idx, weights=e, minlength=E) / n_e
-    s_w2 = float(np.sum((e - mean_e[idx]) ** 2)) / max(N - E, 1)
-    s_u2 = 0.0
-    if E > 7 and N > E:
-        ms_b = float(np.sum(n_e * mean_e ** 2)) / (E - 6)
-        n0 = (N - float(np.sum(n_e ** 2)) / N) / (E - 1)
-        s_u2 = max(0.0, (ms_b - s_w2) / max(n0, 1.0))
+    E = len(labels)
+    s_w2, s_u2 = variance_components(sw * np.asarray(z, float), edge)
     s_w2 = max(s_w2, 1.0 - s_u2)
     g = np.zeros((E, J.shape[1]))
     np.add.at(g, idx, Jt)
@@ -367,8 +392,10 @@ def measure_band(image, camera: Camera, holder: Holder, start: PoseEstimate,
     res[valid] = r
     wt = np.zeros(len(valid))
     wt[valid] = w
+    s_w2, s_u2 = variance_components(np.sqrt(w) * r, bp.edge[valid])
     band = BandPose(dof, parts, fit, res, wt, s, passes, calibrated=looks is not None,
-                    calibration_covers=covers)
+                    calibration_covers=covers, residual_within_edge_px=math.sqrt(s_w2),
+                    residual_shared_per_edge_px=math.sqrt(s_u2))
     R = rotation_from_euler_deg(*dof[:3])
     inl = w > 0.5
     rms = float(np.sqrt(np.mean(r[inl] ** 2))) if inl.any() else math.nan
