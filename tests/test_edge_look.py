@@ -262,6 +262,13 @@ def test_edge_look_changes_the_fitted_look(new_holder):
                        edge_look=replace(cal, offsets=replace(cal.offsets,
                                                               radius_range_mm=big)))
     assert "model floor" in worn_ref.quality.budget.to_dict()["parts"]
+    # outside what it covers the calibration's own correction is a 1-sigma part of its own
+    # (how it carries there was not measured); inside, and without offsets, no such part
+    for m in (far, worn_ref):
+        ext = m.quality.budget.to_dict()["parts"]["calibration extrapolated"]
+        assert ext["position_3sigma_mm"] > 0
+    for m in (calib, plain, bare):
+        assert "calibration extrapolated" not in m.quality.budget.to_dict()["parts"]
     # and the JSON says why
     assert calib.estimate.info["band"].to_dict()["look"]["calibration_covers"] is True
     assert far.estimate.info["band"].to_dict()["look"]["calibration_covers"] is False
@@ -482,3 +489,23 @@ def test_only_methods_that_take_a_look_get_it(new_holder):
     _, img, cal, _ = new_holder
     m = measure(img, CAM, HOLDER, method="dm+r", edge_look=cal)
     assert m.estimate.method == "dm+r"
+
+
+def test_extrapolated_calibration_part_is_its_correction(new_holder):
+    """Beyond its reference distances the calibration's correction (offset and depth, each
+    segment moved by ``offset - depth tan(theta)``) enters the budget as 1 sigma: that part's
+    std per DOF is the pose change between measuring with and without the calibrated offsets
+    (fails if the part were the uniform offset alone, or the correction's sign or size off)."""
+    _, img, cal, _ = new_holder
+    limits = QualityLimits(edge_shape="unknown")
+    offs = replace(cal.offsets, offset_mm=(("chamfer", 0.05), ("round", 0.05)),
+                   depth_mm=(("chamfer", 0.5), ("round", 0.5)), distance_range_mm=(800.0, 900.0))
+    with_off = measure(img, CAM, HOLDER, method="dm+b", limits=limits,
+                       edge_look=replace(cal, offsets=offs))
+    without = measure(img, CAM, HOLDER, method="dm+b", limits=limits,
+                      edge_look=replace(cal, offsets=DesignEdgeOffsets()))
+    sd = np.sqrt(np.diag(with_off.quality.budget.parts["calibration extrapolated"]))
+    dx = np.abs(with_off.pose.dof - without.pose.dof)
+    assert dx[5] > 0.1                               # the correction matters in depth
+    # (the second pass samples at the pose it is given: a few thousandths of a degree apart)
+    assert np.allclose(sd, dx, rtol=0.15, atol=[0.01] * 3 + [5e-3] * 3)

@@ -201,7 +201,8 @@ class Measurement:
                          f"{d['residual_shared_per_edge_px']:.2f} px shared per edge")
             if band.calibration_covers is False:
                 lines.append("edge look: calibrated in the cell on other distances, breaks or "
-                             "shapes than this one: the budget keeps the generic model floor")
+                             "shapes than this one: the budget keeps the generic model floor "
+                             "and counts the calibration's correction as uncertain")
         return lines
 
     def to_dict(self) -> dict:
