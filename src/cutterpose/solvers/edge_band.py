@@ -244,11 +244,9 @@ def edge_noise_cov(J, z, w, edge) -> np.ndarray:
     is ``A^-1 Jt^T V Jt A^-1``, ``A = Jt^T Jt``, ``V`` the covariance of ``e``. The ``e_s``
     are modelled as ``u_e + eps_s``: ``eps_s`` independent, variance ``s_w^2``, and one ``u_e``
     per edge (``edge`` (S,)), variance ``s_u^2``: what the segments of one edge share (the
-    break's radius there, a chip, the light on that edge). ``s_w^2`` is the pooled
-    within-edge mean square; ``s_u^2 = (MS_b - s_w^2) / n_0``, ``MS_b`` the edges' mean
-    squares about zero on ``E - 6`` degrees of freedom (the six DOFs absorb edge-level
-    patterns), ``n_0 = (N - sum n_e^2 / N) / (E - 1)`` (one-way ANOVA, unbalanced). The total
-    per segment is kept >= 1 (the profile fits' own variances). Then
+    break's radius there, a chip, the light on that edge), both estimated from the residuals
+    (:func:`variance_components`); the total per segment is kept >= 1 (the profile fits' own
+    variances). Then
     ``Jt^T V Jt = s_w^2 A + s_u^2 sum_e g_e g_e^T``, ``g_e`` the sum of the edge's rows of
     ``Jt``.
 
@@ -257,9 +255,8 @@ def edge_noise_cov(J, z, w, edge) -> np.ndarray:
     the pose.
 
     References:
-        Searle, Casella, McCulloch, *Variance Components* (1992), ch. 3 (one-way ANOVA
-        estimators); Cameron, Miller, J. Human Resources 50 (2015) (clustered errors in a
-        sandwich).
+        Cameron, Miller, "A practitioner's guide to cluster-robust inference", J. Human
+        Resources 50 (2015) (clustered errors in a sandwich).
     """
     sw = np.sqrt(np.asarray(w, float))
     Jt = sw[:, None] * np.asarray(J, float)
