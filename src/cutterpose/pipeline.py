@@ -52,7 +52,13 @@ from .errors import CutterposeError, FeatureError, ImageError, InputError
 from .frames import load_frame
 from .geometry.camera import Camera, default_camera
 from .geometry.holder import Holder, default_holder
-from .geometry.pose import Pose, pixel_jacobian, pose_from_plane_homography, rotation_from_euler_deg
+from .geometry.pose import (
+    Pose,
+    pixel_jacobian,
+    pose_from_plane_homography,
+    rotation_from_euler_deg,
+    wrap_deg,
+)
 from .geometry.working_range import MotionRange
 from .image import FeatureParams, Features, detect_features
 from .methods import get_method
@@ -689,7 +695,7 @@ def _demo_report(m: Measurement, truth: Pose, out: Path) -> str:
     if m.pose is not None:
         est, tru = m.pose.dof, truth.dof
         err = est - tru
-        err[:3] = (err[:3] + 180.0) % 360.0 - 180.0
+        err[:3] = wrap_deg(err[:3])
         lines.append(f"{'':10s} {'measured':>10s} {'std':>8s} {'true':>10s} {'error':>9s}")
         for k, n in enumerate(names):
             lines.append(f"{n:10s} {est[k]:10.4f} {m.std_dof[k]:8.4f} {tru[k]:10.4f} "

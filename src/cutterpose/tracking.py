@@ -111,7 +111,7 @@ from .errors import CutterposeError, InputError
 from .frames import load_frame
 from .geometry.camera import Camera, default_camera
 from .geometry.holder import Holder, default_holder, outward_edge_normals
-from .geometry.pose import Pose, pixel_jacobian
+from .geometry.pose import Pose, pixel_jacobian, wrap_deg
 from .image import FeatureParams, as_grey_u8
 from .image.edges import intersect_consecutive, robust_edge_lines
 from .methods import get_method
@@ -606,7 +606,7 @@ class Tracker:
         band = Pose(est.R_cam_holder, est.t_cam_holder_mm)
         std_band = q.budget.std_dof
         diff = band.dof - res.pose.dof
-        diff[:3] = (diff[:3] + 180.0) % 360.0 - 180.0
+        diff[:3] = wrap_deg(diff[:3])
         z = np.abs(diff) / np.hypot(std_band, res.std_dof)
         j = int(np.argmax(z))
         if not z[j] <= tp.anchor_gate_sigma:

@@ -64,7 +64,7 @@ from ..geometry.pose import Pose
 __all__ = [
     "RenderSettings", "PRESETS", "preset", "Rendered", "render_holder", "render_set",
     "random_pose", "add_sensor_noise", "defocus", "light_falloff", "shade_points",
-    "fractal_noise", "normalized_grid", "save_rendered",
+    "fractal_noise", "normalized_grid", "save_rendered", "auto_exposed", "distance_doc",
 ]
 
 D_REF_MM = 600.0
@@ -923,6 +923,15 @@ def auto_exposed(light_dn: float, pose: Pose) -> float:
     return light_dn * (float(pose.t_mm[2]) / D_REF_MM) ** 2
 
 
+def distance_doc(distance_mm: tuple[float, float] | None) -> dict:
+    """The ``truth.json`` keys of a set drawn over ``distance_mm`` = (near, far) depths and lit
+    by :func:`auto_exposed` (none for the default 600 mm sets)."""
+    if distance_mm is None:
+        return {}
+    return {"distance_mm": list(distance_mm),
+            "auto_exposure": f"light_dn * (Z / {D_REF_MM:g} mm)^2"}
+
+
 def _set_item(args) -> tuple[dict, bytes]:
     """Render image ``i`` of a set; returns its ``truth.json`` entry and the PNG file's bytes
     (the caller writes it, so workers on other machines need no access to ``out_dir``)."""
@@ -995,9 +1004,7 @@ def render_set(count: int, seed: int, out_dir, camera: Camera | None = None,
     images = run_jobs(_set_item, jobs, workers, scheduler, write, store=lambda r: r[0])
     doc = {"camera": camera.to_dict(), "holder": holder.to_dict(), "seed": seed,
            "presets": {n: asdict(PRESETS[n]) for n in names}, "images": images}
-    if distance_mm is not None:
-        doc["distance_mm"] = list(distance_mm)
-        doc["auto_exposure"] = "light_dn * (Z / 600 mm)^2"
+    doc |= distance_doc(distance_mm)
     path = out / "truth.json"
     path.write_text(json.dumps(doc, indent=1))
     return path

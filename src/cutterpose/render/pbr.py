@@ -73,6 +73,7 @@ from .analytic import (
     add_sensor_noise,
     auto_exposed,
     defocus,
+    distance_doc,
     fractal_noise,
     normalized_grid,
     random_pose,
@@ -1162,9 +1163,7 @@ def render_field_set(count: int, seed: int, out_dir, preset: FieldPreset | str =
     out.mkdir(parents=True, exist_ok=True)
     doc = {"camera": camera.to_dict(), "holder": holder.to_dict(), "seed": seed,
            "engine": "pbr", "presets": {preset.name: asdict(preset)}, "images": []}
-    if distance_mm is not None:
-        doc["distance_mm"] = list(distance_mm)
-        doc["auto_exposure"] = "light_dn * (Z / 600 mm)^2"
+    doc |= distance_doc(distance_mm)
     path = out / "truth.json"
     done = {}
     if resume and path.is_file():
