@@ -118,3 +118,36 @@ def test_dm_plus_b_on_the_papers_chain(chamfered):
     assert m.pose is not None, m.quality.reason
     assert abs(m.pose.dof[5] - pose.dof[5]) < 0.15
     assert m.to_dict()["features"]["order"] == "contour"
+
+
+def test_dm_plus_b_starts_from_the_outline_and_needs_no_corners(chamfered):
+    """On the field chain ``dm+b`` starts from the pocket outline's pose: ``measure`` skips the
+    line fits (no corners, no 'lines' stage), and the pose is the same, to the last digit,
+    when the corners are detected anyway (so ``experiment images``, which detects them once
+    for every method, measures what ``measure`` gives). Fails if the start or the sampled
+    edges came from the corners again."""
+    pose, r = chamfered
+    fast = measure(r.image, CAM, HOLDER, method="dm+b", limits=LIMITS)
+    full = measure(r.image, CAM, HOLDER, method="dm+b", limits=LIMITS, corners=True)
+    assert fast.ok and full.ok, (fast.quality.reason, full.quality.reason)
+    assert fast.features.segmentation == "outline" and full.features.segmentation == "field"
+    assert "lines" not in fast.timings_ms and "lines" in full.timings_ms
+    assert len(fast.corners_px) == 0 and len(full.corners_px) == 20
+    assert np.array_equal(fast.pose.dof, full.pose.dof)
+    assert fast.estimate.info["start"].info["from"] == "outline"
+    d = json.loads(json.dumps(fast.to_dict()))
+    assert d["corners_px"] == [] and d["features"]["segmentation"] == "outline"
+    # dm+ still detects its corners
+    plain = measure(r.image, CAM, HOLDER, method="dm+", limits=LIMITS)
+    assert plain.features.segmentation == "field" and len(plain.corners_px) == 20
+
+
+def test_outline_start_refuses_a_degenerate_homography():
+    from cutterpose.pipeline import outline_start
+
+    assert outline_start(np.zeros((3, 3)), CAM) is None
+    assert outline_start(np.full((3, 3), np.nan), CAM) is None
+    H = CAM.K @ np.column_stack([np.eye(3)[:, :2], [0, 0, 600.0]])
+    est = outline_start(H, CAM)
+    assert est and np.allclose(est.t_cam_holder_mm, [0, 0, 600]) and np.allclose(
+        est.R_cam_holder, np.eye(3))

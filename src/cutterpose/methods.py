@@ -35,6 +35,10 @@ class Method:
     ``refine(start, features, camera, model, shapes) -> PoseEstimate`` (``dm+r``, ``dm+b``;
     their ``solve`` on corners alone is the registered fallback). ``takes_edge_look``: its
     ``refine`` also takes ``edge_look=`` (a look calibrated in the cell: ``dm+b``).
+    ``start_from_outline``: on the field chain its refinement starts from the pose of the
+    pocket outline's homography instead of ``base``'s pose from the corners (``dm+b``: the band
+    needs a start within a few pixels, which the outline fit gives, and no corners), so
+    :func:`cutterpose.pipeline.measure` skips the line fits and corners for it.
     """
 
     name: str
@@ -45,6 +49,7 @@ class Method:
     base: str | None = None
     refine: Callable | None = None
     takes_edge_look: bool = False
+    start_from_outline: bool = False
 
 
 # name -> (module, attribute, needs_correspondences, description)
@@ -70,8 +75,8 @@ _ENTRIES: dict[str, tuple[str, str, bool, str]] = {
     "dm+r": ("cutterpose.solvers.edge_radius", "solve", False,
              "dm+ + the radius of the broken pocket edge: the design edge's pose"),
     "dm+b": ("cutterpose.solvers.edge_band", "solve", False,
-             "dm+ + the band across every edge fitted with the edge model: the design edge's "
-             "pose (needs the image)"),
+             "the band across every edge fitted with the edge model from the outline's pose "
+             "(dm+'s on the paper's chain): the design edge's pose (needs the image)"),
 }
 
 #: how the pipeline runs a method beyond ``solve`` (:class:`Method`): range search, or the
@@ -82,7 +87,7 @@ _PIPELINE: dict[str, dict] = {
     "dm-paper": {"searches_range": True},
     "dm+r": {"base": "dm+", "refine": ("cutterpose.solvers.edge_radius", "refine_features")},
     "dm+b": {"base": "dm+", "refine": ("cutterpose.solvers.edge_band", "refine_features"),
-             "takes_edge_look": True},
+             "takes_edge_look": True, "start_from_outline": True},
 }
 
 

@@ -394,6 +394,29 @@ def _solve(method: str, corners_px: np.ndarray, camera: Camera, holder: Holder,
     return m.solve(corners_px, camera, holder)
 
 
+def outline_start(H_ideal_holder, camera: Camera, method: str = "outline"
+                  ) -> PoseEstimate | None:
+    """The pose of the pocket outline's homography (holder plane -> ideal px; Zhang's
+    decomposition, :func:`~cutterpose.geometry.pose.pose_from_plane_homography`) as a start,
+    or None when it is degenerate. Its residual is NaN: no corners were fitted."""
+    rt = pose_from_plane_homography(H_ideal_holder, camera.K)
+    if rt is None:
+        return None
+    return PoseEstimate(method, rt[0], np.asarray(rt[1], float), info={"from": "outline"})
+
+
+def corner_residual_px(features: Features, camera: Camera, holder: Holder,
+                       limits: QualityLimits | None = None) -> float:
+    """RMS residual (ideal px) of ``dm+``'s pose fitted to the detected corners: how far the
+    innermost rise the corners follow lies off the rigid model (NaN without a pose). The
+    tracker holds its tracked edges to it."""
+    if not np.isfinite(np.asarray(features.corners_px, float)).all(axis=1).any():
+        return math.nan
+    est = _solve("dm+", features.corners_px, camera, holder, limits or QualityLimits(),
+                 features.order, features.H_ideal_holder)
+    return float(est.residual_px) if est else math.nan
+
+
 def _refine(method: str, features: Features, camera: Camera, holder: Holder,
             limits: QualityLimits, edge_look=None) -> PoseEstimate:
     """A method that refines its base method's pose with more than the corners
@@ -401,8 +424,12 @@ def _refine(method: str, features: Features, camera: Camera, holder: Holder,
     calibrated ``edge_look`` goes to a refinement that takes one (``dm+b``); the others ignore
     it."""
     m = get_method(method)
-    start = _solve(m.base, features.corners_px, camera, holder, limits, features.order,
-                   features.H_ideal_holder)
+    start = None
+    if m.start_from_outline and features.order == "holder" and features.H_ideal_holder is not None:
+        start = outline_start(features.H_ideal_holder, camera)
+    if start is None:
+        start = _solve(m.base, features.corners_px, camera, holder, limits, features.order,
+                       features.H_ideal_holder)
     kw = {}
     if edge_look is not None and m.takes_edge_look:
         kw["edge_look"] = edge_look
@@ -584,7 +611,8 @@ def worst_line_residual(pose: Pose, features: Features, camera: Camera, holder: 
 def measure(image, camera: Camera | None = None, holder: Holder | None = None,
             method: str = "dm+b", params: FeatureParams | None = None,
             limits: QualityLimits | None = None, grasp_point_mm=None, *, handeye=None,
-            T_base_flange=None, robot_accuracy=None, edge_look=None) -> Measurement:
+            T_base_flange=None, robot_accuracy=None, edge_look=None,
+            corners: bool | None = None) -> Measurement:
     """Measure the holder's pose in one image (and, given ``handeye`` and ``T_base_flange``,
     in the robot's base frame: :func:`cutterpose.robot.locate`, result in ``.robot``).
 
@@ -605,6 +633,9 @@ def measure(image, camera: Camera | None = None, holder: Holder | None = None,
     edge_look : the edge look calibrated in the cell on a reference holder
         (:func:`cutterpose.calibration.edge_look.load_edge_look`): ``dm+b`` fits it instead of
         its generic looks; other methods ignore it.
+    corners : detect the corners on the field chain (default: when the method needs them;
+        ``dm+b`` starts from the pocket outline and does not, so ``corners_px`` is empty; True
+        to have them in the result anyway, at the line fits' cost, ~14 ms).
 
     Returns
     -------
@@ -622,7 +653,7 @@ def measure(image, camera: Camera | None = None, holder: Holder | None = None,
     """
     camera = camera or default_camera("table1")
     holder = holder or default_holder()
-    get_method(method)  # unknown names fail before any work
+    m_def = get_method(method)  # unknown names fail before any work
     if grasp_point_mm is not None:
         p = np.asarray(grasp_point_mm, float).reshape(-1)
         if p.shape != (3,) or not np.all(np.isfinite(p)):
@@ -634,8 +665,12 @@ def measure(image, camera: Camera | None = None, holder: Holder | None = None,
         # a file is decoded (or read raw); a raw buffer is only viewed (cutterpose.frames)
         image = load_frame(image, camera)
         load_ms = (time.perf_counter() - t0) * 1e3
+    # a method that starts from the outline needs no corners on the field chain: the line fits
+    # are skipped (a third of the image stage)
+    if corners is None:
+        corners = not m_def.start_from_outline
     try:
-        feats = detect_features(image, camera, holder, params)
+        feats = detect_features(image, camera, holder, params, corners=corners)
     except FeatureError as e:
         timings = {"load": load_ms} if load_ms else {}
         timings["total"] = (time.perf_counter() - t0) * 1e3

@@ -121,6 +121,7 @@ from .pipeline import (
     Measurement,
     QualityLimits,
     band_verdict,
+    corner_residual_px,
     measure,
 )
 from .solvers.edge_band import as_band_looks, measure_band
@@ -486,7 +487,7 @@ class Tracker:
         # full measurement
         t1 = time.perf_counter()
         m = measure(img, self.camera, self.holder, self.method, self.params, self.limits,
-                    edge_look=self.edge_look)
+                    edge_look=self.edge_look, corners=True)
         timings["full"] = (time.perf_counter() - t1) * 1e3
         self._prev = None   # the velocity is unknown after a fall-back
         if m.ok:
@@ -496,8 +497,11 @@ class Tracker:
             # each of them lies from the design edge (module doc, "Broken edges")
             refines = get_method(self.method).base is not None
             start = m.estimate.info.get("start") if refines and m.estimate else None
-            # the residual the tracked edges are held to: the corners' (dm+'s, for dm+b)
+            # the residual the tracked edges are held to: the corners' (dm+'s, for dm+b,
+            # which starts from the outline and fits no corners itself)
             rms = start.residual_px if start is not None else m.quality.rms_px
+            if refines and not np.isfinite(rms) and m.features is not None:
+                rms = corner_residual_px(m.features, self.camera, self.holder, self.limits)
             self._rms_ref = float(rms) if np.isfinite(rms) else 0.0
             if refines:
                 self._anchor_full(img, k, m)

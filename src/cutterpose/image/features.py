@@ -66,10 +66,12 @@ __all__ = ["detect_features"]
 
 
 def detect_features(image: np.ndarray, camera: Camera, holder: Holder,
-                    params: FeatureParams | None = None) -> Features:
+                    params: FeatureParams | None = None, corners: bool = True) -> Features:
     """Run the image processing on a grey image of the camera's size: the field chain
     (:func:`detect_features_field`, the default) or, with ``params.chain == "paper"``, the
-    threshold chain of section 2.1 (module doc).
+    threshold chain of section 2.1 (module doc). ``corners=False``: the field chain stops at
+    the pocket outline (no line fits, no corners: what ``dm+b`` needs); the paper's chain
+    ignores it.
 
     Raises
     ------
@@ -81,7 +83,7 @@ def detect_features(image: np.ndarray, camera: Camera, holder: Holder,
     """
     params = params or FeatureParams.for_camera(camera)
     if params.chain == "field":
-        return detect_features_field(image, camera, holder, params)
+        return detect_features_field(image, camera, holder, params, corners)
     if params.chain != "paper":
         raise InputError(f"unknown feature chain {params.chain!r}: 'field' or 'paper'")
     timings: dict[str, float] = {}
@@ -195,7 +197,7 @@ def _timer():
 
 
 def detect_features_field(image: np.ndarray, camera: Camera, holder: Holder,
-                          params: FeatureParams) -> Features:
+                          params: FeatureParams, corners: bool = True) -> Features:
     """The field chain (issue 10): lines and corners from the gradient, robustly, with no dark
     pocket, dark surround or threshold.
 
@@ -209,6 +211,10 @@ def detect_features_field(image: np.ndarray, camera: Camera, holder: Holder,
        support is not seen;
     4. corner ``i`` (holder order) = intersection of edges ``i - 1`` and ``i``, seen when both
        lines are seen and it lies within ``max_corner_gap_px`` of the outline fit's corner.
+
+    With ``corners=False`` it stops after step 2 (``segmentation == "outline"``): no corners
+    or lines are seen, the outline's homography and lines are there (``dm+b`` starts from
+    them and measures the bands itself; the line fits are a third of the chain's time).
 
     Returns
     -------
@@ -252,9 +258,27 @@ def detect_features_field(image: np.ndarray, camera: Camera, holder: Holder,
     if near.any():
         raise FeatureError(f"the holder is partly out of view: its pocket corner near "
                            f"{where_px(pred_px[near][0])} px is outside the image")
+    n = len(model)
+    # lines, spans and normals of the outline fit, for the wear indicator and the overlay
+    sign = np.sign(signed_area(pred))
+    nxt = np.roll(pred, -1, axis=0)
+    d = (nxt - pred) / np.linalg.norm(nxt - pred, axis=1, keepdims=True)
+    inward = sign * np.column_stack([-d[:, 1], d[:, 0]])
+    lines_fit = np.array([line_from(pred[k], inward[k]) for k in range(n)])
+    t = np.linspace(0, 1, 24, endpoint=False)
+    dense = (pred[:, None, :] + t[None, :, None] * (nxt - pred)[:, None, :]).reshape(-1, 2)
+    if not corners:
+        none = np.zeros(n, bool)
+        return Features(corners_px=np.full((n, 2), np.nan),
+                        corners_ideal_px=np.full((n, 2), np.nan),
+                        lines_ideal=np.full((n, 3), np.nan), lines_threshold_ideal=lines_fit,
+                        segments=[], primitives=[], contour_px=camera.distort_px(dense),
+                        edge_points_px=[], roi=roi, roi_score=score, threshold=-1,
+                        refined=False, timings_ms=timings, segmentation="outline",
+                        inward_ideal=inward, visible=none, order="holder",
+                        lines_visible=none.copy(), H_ideal_holder=H, image=image)
     lines, seen, edges, support, _ = robust_edge_lines(sub, origin, camera, pred, params)
     lap("lines")
-    n = len(model)
     X = intersect_consecutive(np.where(np.isfinite(lines), lines, 0.0))
     corners_ideal = np.roll(X, 1, axis=0)  # corner i: edges i - 1 and i
     visible = seen & np.roll(seen, 1)
@@ -271,12 +295,6 @@ def detect_features_field(image: np.ndarray, camera: Camera, holder: Holder,
                            f"{int(seen.sum())}; least-supported edge near {where_px(mid)} px, "
                            f"{100 * support[k]:.0f} % of it): holder hidden or damaged")
     lap("corners")
-    # lines, spans and normals of the outline fit, for the wear indicator and the overlay
-    sign = np.sign(signed_area(pred))
-    nxt = np.roll(pred, -1, axis=0)
-    d = (nxt - pred) / np.linalg.norm(nxt - pred, axis=1, keepdims=True)
-    inward = sign * np.column_stack([-d[:, 1], d[:, 0]])
-    lines_fit = np.array([line_from(pred[k], inward[k]) for k in range(n)])
     length = np.linalg.norm(nxt - pred, axis=1)
     # edge_wear keeps 2 refine_trim_px more from each end (about a contour segment's span)
     spans = [(0.5 * params.corner_trim_px, float(length[k]) - 0.5 * params.corner_trim_px,
@@ -290,8 +308,6 @@ def detect_features_field(image: np.ndarray, camera: Camera, holder: Holder,
     cut = np.cumsum([len(e) for e in edges])[:-1]
     segs = [Segment("line", 0, 0, pts, float(length[k]))
             for k, pts in enumerate(np.split(flat, cut))]
-    t = np.linspace(0, 1, 24, endpoint=False)
-    dense = (pred[:, None, :] + t[None, :, None] * (nxt - pred)[:, None, :]).reshape(-1, 2)
     return Features(corners_px=corners_px, corners_ideal_px=corners_ideal, lines_ideal=lines,
                     lines_threshold_ideal=lines_fit, segments=segs, primitives=[],
                     contour_px=camera.distort_px(dense), edge_points_px=edges, roi=roi,

@@ -150,8 +150,10 @@ class Features:
     roi_score : template matching score.
     threshold : the grey level used.
     timings_ms : wall time per stage.
-    segmentation : "contour" (the paper's segmentation gave the 20 segments) or "model" (the
-        fallback: lines from the holder model fitted to the contour, then refined).
+    segmentation : "contour" (the paper's segmentation gave the 20 segments), "model" (the
+        fallback: lines from the holder model fitted to the contour, then refined), "field"
+        (the field chain's robust line fits) or "outline" (the field chain stopped at the
+        pocket outline, ``detect_features(..., corners=False)``: no corners or lines seen).
     edge_darkening : (N,) per line, how much darker the face is just outside the edge than
         farther out, as a fraction of the edge contrast (:func:`edge_wear`; ~0 for a clean
         edge, 0.3-0.4 for a worn one). None without refinement.
