@@ -507,5 +507,6 @@ def test_extrapolated_calibration_part_is_its_correction(new_holder):
     sd = np.sqrt(np.diag(with_off.quality.budget.parts["calibration extrapolated"]))
     dx = np.abs(with_off.pose.dof - without.pose.dof)
     assert dx[5] > 0.1                               # the correction matters in depth
-    # (the second pass samples at the pose it is given: a few thousandths of a degree apart)
-    assert np.allclose(sd, dx, rtol=0.15, atol=[0.01] * 3 + [5e-3] * 3)
+    # (the second pass samples at the pose it is given, and the tilts move with that by a few
+    # hundredths of a degree: docs/notes/edge_band.md, "How far the pose moves with its start")
+    assert np.allclose(sd, dx, rtol=0.15, atol=[0.03] * 3 + [5e-3] * 3)

@@ -20,9 +20,8 @@ The fit per segment (a third to a half of one edge, ``n_seg`` per edge):
   for a shape (fillet or 45 deg chamfer) and a photometric variant (``LOOK_VARIANTS``);
 * ``y(w) ~ a + b m(w - shift)``, ``b > 0``: the grey offset and gain are solved in closed form,
   ``(r, shift)`` on a grid (coarse over the whole range on a 0.4 px grid, then fine round the
-  best on 0.2 px with a parabola), the look is shared by every segment of the image (one
-  material, one light) and chosen by the trimmed sum of the segments' costs (on every other
-  segment: the choice needs no more);
+  best on 0.2 px and 9 radii with a parabola), the look is shared by every segment of the
+  image (one material, one light) and chosen by the trimmed sum of the segments' costs;
 * each segment's shift variance with its radius free, from the Hessian of the cost round its
   minimum (:func:`_shift_variance`): the pose fit's weights;
 * a look calibrated in the cell on a reference holder at known poses (:class:`BandLooks`,
@@ -68,9 +67,11 @@ __all__ = ["BandProfiles", "BandFit", "BandLooks", "DesignEdgeOffsets", "sample_
 COARSE_RADII_MM = np.array([0.0, 0.25, 0.5, 0.75, 1.0, 1.25, 1.5, 2.0, 2.5, 3.0, 3.5, 4.0, 4.5,
                             5.0, 5.75, 6.5])
 #: the fine scan's radius step: 0.05 mm up to 2 mm (where the coarse grid is 0.25 mm), 0.1 mm
-#: beyond (coarse 0.5 mm); FINE_RADII radii round the coarse best
+#: beyond (coarse 0.5 mm); FINE_RADII radii round the coarse best (+-0.2 mm: the coarse step's
+#: half and a node either side; 13 (+-0.3 mm) cost a third more and gave the same poses within
+#: their scatter, eighth session)
 FINE_STEP_MM = 0.05
-FINE_RADII = 13
+FINE_RADII = 9
 #: the coarse shift scan: +- this many px (the start may be a few mm off in depth) in steps of
 COARSE_SHIFT_PX = 6.0
 COARSE_SHIFT_STEP_PX = 0.4
@@ -640,15 +641,15 @@ def fit_band(bp: BandProfiles, camera: Camera, holder: Holder, R_cam_holder, t_c
             c = _fit_looks(bp, bank, [lf.look], shift_range_px=2.0)[0]
             out.append(_fit_looks(bp, bank, [lf.look], c)[0])
         return _offset(BandFit(out[0], out[1:], bp), looks, bank.view)
-    # the look is chosen on every other segment (with 40 or more): the coarse scans of all
-    # looks are the fit's main cost, and a shared look needs no more
-    sub = _subset(bp, np.arange(0, len(bp.edge), 2)) if len(bp.edge) >= 40 else bp
-    coarse = [_fit_looks(sub, bank, [lk])[0] for lk in candidates]
+    # the look is chosen on all the pass's segments: a coarse scan's cost is the edge model's
+    # profiles, one per edge end whatever the number of segments, so choosing it on every
+    # other segment (as before) saved nothing and needed the chosen look scanned again
+    coarse = [_fit_looks(bp, bank, [lk])[0] for lk in candidates]
     totals = np.array([lf.total for lf in coarse])
     order = np.argsort(totals)
     best_i = int(order[0])
-    n_eff = max(1, int(np.ceil(0.75 * int(sub.valid.sum()))))
-    full = _fit_looks(bp, bank, [candidates[best_i]])[0] if sub is not bp else coarse[best_i]
+    n_eff = max(1, int(np.ceil(0.75 * int(bp.valid.sum()))))
+    full = coarse[best_i]
     # the chosen variant at each blur (one raw profile), then the plausible others at the
     # chosen blur
     fine = _fit_looks(bp, bank, [replace(candidates[best_i], blur_sigma_px=b) for b in blurs],
@@ -663,8 +664,7 @@ def fit_band(bp: BandProfiles, camera: Camera, holder: Holder, R_cam_holder, t_c
             continue
         lk = replace(candidates[i], blur_sigma_px=best.look.blur_sigma_px)
         if fine_plausible:
-            c = _fit_looks(bp, bank, [lk])[0] if sub is not bp else coarse[i]
-            plausible.append(_fit_looks(bp, bank, [lk], c)[0])
+            plausible.append(_fit_looks(bp, bank, [lk], coarse[i])[0])
         else:
             plausible.append(replace(coarse[i], look=lk))
     if looks is not None:
@@ -733,11 +733,3 @@ def profile_costs(bp: BandProfiles, view: em.EdgeView, looks, radii_mm=CAL_RADII
     cost = np.stack(cost)
     cost[:, ~bp.valid] = np.inf
     return cost, np.stack(gain)
-
-
-def _subset(bp: BandProfiles, idx) -> BandProfiles:
-    """The profiles of the segments ``idx`` only."""
-    return BandProfiles(bp.w_px, bp.values[idx], bp.edge[idx], bp.frac[idx],
-                        bp.points_ideal_px[idx], bp.normals_ideal[idx],
-                        bp.points_holder_mm[idx], bp.used[idx], bp.valid[idx],
-                        bp.px_per_mm[idx])
