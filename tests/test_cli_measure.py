@@ -95,3 +95,21 @@ def test_edge_shape_option_reaches_the_verdict(tmp_path):
     assert band.exit_code == 0, band.output
     bad = runner.invoke(app, ["measure", str(tmp_path / "h.png"), "--edge-shape", "oval"])
     assert bad.exit_code == 2 and "edge_shape" in bad.output
+
+
+def test_corners_option_adds_the_corners_to_dm_plus_b(tmp_path):
+    """dm+b (the default) starts from the pocket outline and reports no corners; --corners
+    detects them anyway and leaves the pose as it was."""
+    from cutterpose.geometry.camera import default_camera
+
+    img = render_holder(Pose.from_euler(2, -3, 4, 8, -6, 612), default_camera("table1"),
+                        seed=7).image
+    cv2.imwrite(str(tmp_path / "h.png"), img)
+    plain = runner.invoke(app, ["measure", str(tmp_path / "h.png"), "--json"])
+    more = runner.invoke(app, ["measure", str(tmp_path / "h.png"), "--json", "--corners"])
+    assert plain.exit_code == 0 and more.exit_code == 0, (plain.output, more.output)
+    a, b = json.loads(plain.stdout.strip()), json.loads(more.stdout.strip())
+    assert a["corners_px"] == [] and len(b["corners_px"]) == 20
+    assert a["features"]["segmentation"] == "outline"
+    assert a["pose"]["R_cam_holder"] == b["pose"]["R_cam_holder"]
+    assert a["pose"]["t_cam_holder_mm"] == b["pose"]["t_cam_holder_mm"]
