@@ -151,3 +151,28 @@ def test_outline_start_refuses_a_degenerate_homography():
     est = outline_start(H, CAM)
     assert est and np.allclose(est.t_cam_holder_mm, [0, 0, 600]) and np.allclose(
         est.R_cam_holder, np.eye(3))
+
+
+def test_dm_plus_b_falls_back_to_the_corners_when_the_outline_start_fails(chamfered,
+                                                                          monkeypatch):
+    """An outline homography bent by what lies on a worn edge gives a start the band cannot
+    follow (a held-back worn image: corners 21 px off, the band on 9 of 40 segments): then
+    ``measure`` detects the corners and starts from their pose, says so, and measures the
+    pose (fails without the fall-back: no pose)."""
+    import cutterpose.pipeline as pl
+
+    pose, r = chamfered
+    bad = pose.dof + np.array([4.3, -2.6, -1.2, 2.5, 0.0, -8.4])
+    far = Pose.from_euler(*bad)
+
+    def bent(H, camera, method="outline"):
+        return pl.PoseEstimate(method, far.R, far.t_mm, info={"from": "outline"})
+
+    monkeypatch.setattr(pl, "outline_start", bent)
+    m = measure(r.image, CAM, HOLDER, method="dm+b", limits=LIMITS)
+    assert m.pose is not None, m.quality.reason
+    assert "outline_start_failed" in m.estimate.info
+    assert "edge segments" in m.estimate.info["outline_start_failed"]
+    assert m.features.segmentation == "field"
+    err = m.pose.dof - pose.dof
+    assert np.all(np.abs(err[:3]) < 0.1) and abs(err[5]) < 0.3

@@ -410,7 +410,7 @@ def corner_residual_px(features: Features, camera: Camera, holder: Holder,
     """RMS residual (ideal px) of ``dm+``'s pose fitted to the detected corners: how far the
     innermost rise the corners follow lies off the rigid model (NaN without a pose). The
     tracker holds its tracked edges to it."""
-    if not np.isfinite(np.asarray(features.corners_px, float)).all(axis=1).any():
+    if not _has_corners(features):
         return math.nan
     est = _solve("dm+", features.corners_px, camera, holder, limits or QualityLimits(),
                  features.order, features.H_ideal_holder)
@@ -424,16 +424,31 @@ def _refine(method: str, features: Features, camera: Camera, holder: Holder,
     calibrated ``edge_look`` goes to a refinement that takes one (``dm+b``); the others ignore
     it."""
     m = get_method(method)
-    start = None
-    if m.start_from_outline and features.order == "holder" and features.H_ideal_holder is not None:
-        start = outline_start(features.H_ideal_holder, camera)
-    if start is None:
-        start = _solve(m.base, features.corners_px, camera, holder, limits, features.order,
-                       features.H_ideal_holder)
     kw = {}
     if edge_look is not None and m.takes_edge_look:
         kw["edge_look"] = edge_look
-    return m.refine(start, features, camera, holder, EDGE_SHAPE_FITS[limits.edge_shape], **kw)
+    shapes = EDGE_SHAPE_FITS[limits.edge_shape]
+    outline = None
+    if m.start_from_outline and features.order == "holder" and features.H_ideal_holder is not None:
+        outline = outline_start(features.H_ideal_holder, camera)
+    if outline is not None:
+        est = m.refine(outline, features, camera, holder, shapes, **kw)
+        if est or not _has_corners(features):
+            return est
+        # the outline's homography can be bent by what lies on a worn edge (a held-back worn
+        # image: its corners up to 21 px off, the band found on 9 of 40 segments): the corners'
+        # pose is the second start
+        first = est
+    start = _solve(m.base, features.corners_px, camera, holder, limits, features.order,
+                   features.H_ideal_holder)
+    est = m.refine(start, features, camera, holder, shapes, **kw)
+    if outline is not None:
+        est.info["outline_start_failed"] = first.reason
+    return est
+
+
+def _has_corners(features: Features) -> bool:
+    return bool(np.isfinite(np.asarray(features.corners_px, float)).all(axis=1).any())
 
 
 def ambiguity_ratio(est: PoseEstimate, corners_ideal_px, camera: Camera, holder: Holder,
@@ -678,6 +693,19 @@ def measure(image, camera: Camera | None = None, holder: Holder | None = None,
                                        timings_ms=timings),
                            camera, holder, handeye, T_base_flange, robot_accuracy)
     m = measure_features(feats, camera, holder, method, limits, edge_look)
+    if (m.pose is None and feats.segmentation == "outline" and m.estimate is not None
+            and not m.estimate):
+        # the band found nothing from the outline's pose: the corners, then their pose as the
+        # start (_refine); the first attempt's time stays in the total
+        try:
+            feats = detect_features(image, camera, holder, params, corners=True)
+        except FeatureError:
+            pass
+        else:
+            first_reason = m.estimate.reason
+            m = measure_features(feats, camera, holder, method, limits, edge_look)
+            if m.estimate is not None:
+                m.estimate.info.setdefault("outline_start_failed", first_reason)
     if load_ms:
         m.timings_ms = {"load": load_ms} | m.timings_ms
     m.timings_ms["total"] = (time.perf_counter() - t0) * 1e3
