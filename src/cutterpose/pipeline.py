@@ -20,8 +20,10 @@ their Jacobian with respect to ``(alpha, beta, gamma, X, Y, Z)``,
 
     s^2 = |r|^2 / (40 - 6),        Cov = s^2 (J^T J)^-1,        std = sqrt(diag Cov).
 
-The default method is ``dm+b`` (:mod:`cutterpose.solvers.edge_band`): ``dm+`` for the start,
-then the band across every broken pocket edge fitted with the edge model
+The default method is ``dm+b`` (:mod:`cutterpose.solvers.edge_band`): the pocket outline's pose
+for the start on the field chain (no corners needed; the corners' ``dm+`` pose when the band
+finds nothing from there, and on the paper's chain), then the band across every broken pocket
+edge fitted with the edge model
 (:mod:`cutterpose.image.edge_band`), so that the pose is that of the design edge on field
 holders. ``dm+r`` (:mod:`cutterpose.solvers.edge_radius`) fits one radius from the corners
 alone. The verdict is an error budget (:mod:`cutterpose.budget`): noise, edge model and model
