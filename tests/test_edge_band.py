@@ -176,3 +176,15 @@ def test_dm_plus_b_falls_back_to_the_corners_when_the_outline_start_fails(chamfe
     assert m.features.segmentation == "field"
     err = m.pose.dof - pose.dof
     assert np.all(np.abs(err[:3]) < 0.1) and abs(err[5]) < 0.3
+
+
+def test_overlay_text_wraps_the_band_summary(chamfered):
+    """The overlay's text box holds the band's long summary line whole (wrapped to its width,
+    not cut at the image's edge)."""
+    from cutterpose.overlay import _lines
+
+    _, r = chamfered
+    m = measure(r.image, CAM, HOLDER, method="dm+b", limits=LIMITS)
+    lines = _lines(m)
+    assert max(len(t) for t in lines) <= 92
+    assert "shared per edge" in " ".join(lines)

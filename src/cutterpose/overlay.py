@@ -14,6 +14,7 @@ Convention:
 
 from __future__ import annotations
 
+import textwrap
 from pathlib import Path
 
 import cv2
@@ -107,12 +108,11 @@ def _lines(m) -> list[str]:
     q = m.quality
     lines = [f"method {m.method}: " + ("OK" if q.ok else "REFUSED")]
     if not q.ok:
-        r = q.reason
-        while r:
-            lines.append("  " + r[:90])
-            r = r[90:]
-    lines += m.pose_lines()
-    return lines[:8]
+        lines += textwrap.wrap(q.reason, 90, initial_indent="  ", subsequent_indent="  ")
+    # long summary lines (the band's) wrapped to the overlay's width, not cut at its edge
+    for line in m.pose_lines():
+        lines += textwrap.wrap(line, 90, subsequent_indent="  ") or [""]
+    return lines[:10]
 
 
 def _text(img, lines):

@@ -216,8 +216,10 @@ def _irls_soft_l1(dof0, X, p, n, K, sd, c: float, max_iter: int = IRLS_MAX_ITER)
     weights), and the Gauss-Newton Hessian ``2 J^T W' J`` with ``W' = diag(rho' + 2 rho'' z^2)
     = diag((1 + u)^-3/2)`` (Triggs et al. 2000, section 6: the robustified Hessian; positive
     here, unlike a Huber's or Cauchy's, so the system stays positive definite). That converges
-    in a few steps where plain reweighting (``W`` in both) crawls; a step that does not lower
-    the cost is halved. The minimum is the one SciPy's trust-region solver finds (tested);
+    in a few steps near the minimum, where plain reweighting (``W`` in both) crawls; far from
+    it, where the loss's curvature all but vanishes, the reweighting step is the better one:
+    each iteration tries both, halves each until it lowers the cost, and keeps the lower. The
+    minimum is the one SciPy's trust-region solver finds (tested);
     written out because on ~80 points and 6 unknowns that solver's per-call overhead was most
     of the pose fit's time.
 
