@@ -161,7 +161,7 @@ def _sqpnp_ref(cam, holder):
     return ref
 
 
-def _time_image(img, path, cam, holder, repeats, sqpnp, method="dm+b"):
+def _time_image(img, path, cam, holder, repeats, sqpnp, method="dm+b", edge_look=None):
     """Fastest of ``repeats`` interleaved runs of: ``measure`` from memory (wall and CPU
     time), ``measure`` of the PNG file (decode included), the naive chain and SQPnP; with the
     stage times of the fastest run and the verdict. Interleaving puts all under the same
@@ -173,7 +173,7 @@ def _time_image(img, path, cam, holder, repeats, sqpnp, method="dm+b"):
     for _ in range(repeats):
         c0, t0 = time.process_time(), time.perf_counter()
         try:
-            m = measure(img, cam, holder, method=method)
+            m = measure(img, cam, holder, method=method, edge_look=edge_look)
         except Exception:  # noqa: BLE001 - a refused image still took its time
             m = None
         t1, c1 = time.perf_counter(), time.process_time()
@@ -185,7 +185,7 @@ def _time_image(img, path, cam, holder, repeats, sqpnp, method="dm+b"):
         if path is not None:
             t2 = time.perf_counter()
             try:
-                measure(path, cam, holder, method=method)
+                measure(path, cam, holder, method=method, edge_look=edge_look)
             except Exception:  # noqa: BLE001
                 pass
             best["png"] = min(best["png"], time.perf_counter() - t2)
@@ -227,13 +227,14 @@ def _field_images(count: int, cam, holder, seed: int = 13):
             for k in range(count)]
 
 
-def _time_set(label, cam, holder, imgs, paths, repeats, sqpnp, method="dm+b"):
+def _time_set(label, cam, holder, imgs, paths, repeats, sqpnp, method="dm+b", edge_look=None):
     from cutterpose.pipeline import measure
 
     rows, accepted = [], 0
-    measure(imgs[0], cam, holder, method=method)
+    measure(imgs[0], cam, holder, method=method, edge_look=edge_look)
     for im, p in zip(imgs, paths):
-        r, _, ok = _time_image(im, p, cam, holder, max(3, repeats // 2), sqpnp, method)
+        r, _, ok = _time_image(im, p, cam, holder, max(3, repeats // 2), sqpnp, method,
+                               edge_look)
         rows.append(r)
         accepted += ok
     med = _report(f"{len(imgs)} {label}", rows)
@@ -242,9 +243,12 @@ def _time_set(label, cam, holder, imgs, paths, repeats, sqpnp, method="dm+b"):
 
 
 def bench_measure(repeats: int = 7, image_sets: tuple = (), per_set: int = 20,
-                  field_images: int = 0, methods=("dm+b", "dm+")) -> None:
+                  field_images: int = 0, methods=("dm+b", "dm+"), edge_look=None) -> None:
     """``measure`` timed per method: ``dm+b`` (the default: the design edge through a broken
-    edge) and ``dm+`` (the corners; the issue-13 target of 50 ms is met by this one only)."""
+    edge) and ``dm+`` (the corners; the issue-13 target of 50 ms is met by this one only).
+    ``edge_look``: a look calibrated in the cell (file), given to ``dm+b`` on the image sets
+    only (the sets it was calibrated for; the bench image and the rendered field images keep
+    the generic looks)."""
     try:
         from cutterpose.pipeline import measure
         from cutterpose.render.analytic import render_holder
@@ -278,8 +282,9 @@ def bench_measure(repeats: int = 7, image_sets: tuple = (), per_set: int = 20,
             _time_set(f"rendered field-preset images (seeds 13..) ({method})", cam, holder,
                       field, [None] * len(field), repeats, sqpnp, method)
         for folder, scam, imgs, paths in sets:
-            _time_set(f"images of {folder} ({method})", scam, holder, imgs, paths, repeats,
-                      sqpnp, method)
+            look = edge_look if method == "dm+b" else None
+            _time_set(f"images of {folder} ({method}{', calibrated look' if look else ''})",
+                      scam, holder, imgs, paths, repeats, sqpnp, method, look)
 
 
 def main() -> None:
@@ -295,14 +300,22 @@ def main() -> None:
     ap.add_argument("--field-images", type=int, default=None,
                     help="render this many field-preset images to time measure on (default "
                          "20 without --images, else 0)")
+    ap.add_argument("--edge-look", default=None,
+                    help="edge look file (`cutterpose calibrate-edge-look`) for dm+b on the "
+                         "--images sets")
     a = ap.parse_args()
     if a.field_images is None:
         a.field_images = 0 if a.images else 20
     if not a.skip_solvers:
         bench_solvers(a.trials)
     if not a.skip_measure:
+        look = None
+        if a.edge_look:
+            from cutterpose.calibration.edge_look import load_edge_look
+            look = load_edge_look(a.edge_look)
         bench_measure(image_sets=tuple(a.images), per_set=a.per_set,
-                      field_images=a.field_images, methods=tuple(a.methods.split(",")))
+                      field_images=a.field_images, methods=tuple(a.methods.split(",")),
+                      edge_look=look)
     peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     print(f"\npeak resident memory of this run: {peak_mb:.0f} MB")
 
