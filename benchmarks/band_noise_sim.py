@@ -20,7 +20,7 @@ import numpy as np
 from cutterpose.geometry.camera import default_camera
 from cutterpose.geometry.holder import default_holder
 from cutterpose.geometry.pose import rotation_from_euler_deg
-from cutterpose.solvers.edge_band import edge_noise_cov, fit_pose_design_points
+from cutterpose.solvers.edge_band import edge_noise_cov, fit_pose_design_points, variance_components
 
 
 def segments(dof, K, per_edge=4):
@@ -44,14 +44,9 @@ def segments(dof, K, per_edge=4):
 
 
 def m_estimator(J, z, w, edge):
-    psi = w * z
     labels, idx = np.unique(edge, return_inverse=True)
-    E, N = len(labels), len(psi)
-    n_e = np.bincount(idx).astype(float)
-    m = np.bincount(idx, weights=psi) / n_e
-    s_w2 = np.sum((psi - m[idx]) ** 2) / (N - E)
-    n0 = (N - np.sum(n_e ** 2) / N) / (E - 1)
-    s_u2 = max(0.0, (np.sum(n_e * m ** 2) / (E - 6) - s_w2) / n0)
+    E = len(labels)
+    s_w2, s_u2 = variance_components(w * z, edge)     # of psi = w z
     g = np.zeros((E, 6))
     np.add.at(g, idx, J)
     Ai = np.linalg.inv(J.T @ (w[:, None] ** 3 * J))

@@ -52,13 +52,19 @@ class JobRunner:
     workers : local worker processes when no scheduler is given (1: run in this process).
     scheduler : address of a running Dask scheduler (``tcp://host:8786``), or a
         ``distributed.Client``; overrides ``workers``.
+    initializer, initargs : run once in every local worker process (state the jobs share,
+        sent once instead of with every job); local processes only.
     """
 
-    def __init__(self, workers: int = 1, scheduler: Any = None):
+    def __init__(self, workers: int = 1, scheduler: Any = None,
+                 initializer: Callable | None = None, initargs: tuple = ()):
         if int(workers) < 1:
             raise InputError(f"workers must be >= 1, got {workers}")
+        if initializer is not None and scheduler is not None:
+            raise InputError("a worker initializer needs local processes, not a Dask scheduler")
         self.workers = int(workers)
         self.scheduler = scheduler
+        self.initializer, self.initargs = initializer, tuple(initargs)
         self._pool = None
         self._client = None
         self._own_client = False
@@ -73,7 +79,9 @@ class JobRunner:
 
             # fork: the workers inherit the imported package (and sys.path) at no cost
             ctx = mp.get_context("fork") if os.name == "posix" else None
-            self._pool = ProcessPoolExecutor(max_workers=self.workers, mp_context=ctx)
+            self._pool = ProcessPoolExecutor(max_workers=self.workers, mp_context=ctx,
+                                             initializer=self.initializer,
+                                             initargs=self.initargs)
         return self
 
     def __exit__(self, *exc) -> None:

@@ -420,32 +420,37 @@ def corner_residual_px(features: Features, camera: Camera, holder: Holder,
 
 
 def _refine(method: str, features: Features, camera: Camera, holder: Holder,
-            limits: QualityLimits, edge_look=None) -> PoseEstimate:
+            limits: QualityLimits, edge_look=None, outline_failed: str | None = None
+            ) -> PoseEstimate:
     """A method that refines its base method's pose with more than the corners
     (``Method.refine``: ``dm+r`` the edge radius, ``dm+b`` the bands in the image). A
     calibrated ``edge_look`` goes to a refinement that takes one (``dm+b``); the others ignore
-    it."""
+    it.
+
+    A method that starts from the outline (``Method.start_from_outline``, field chain) falls
+    back to the corners' pose when the refinement from the outline gives no pose: the outline's
+    homography can be bent by what lies on a worn edge (a held-back worn image: its corners up
+    to 21 px off, the band found on 9 of 40 segments). Without corners in ``features`` the
+    failure is returned; :func:`measure` then detects them and calls again with
+    ``outline_failed`` (the first attempt's reason, so that it is not repeated)."""
     m = get_method(method)
     kw = {}
     if edge_look is not None and m.takes_edge_look:
         kw["edge_look"] = edge_look
     shapes = EDGE_SHAPE_FITS[limits.edge_shape]
-    outline = None
-    if m.start_from_outline and features.order == "holder" and features.H_ideal_holder is not None:
+    if (outline_failed is None and m.start_from_outline and features.order == "holder"
+            and features.H_ideal_holder is not None):
         outline = outline_start(features.H_ideal_holder, camera)
-    if outline is not None:
-        est = m.refine(outline, features, camera, holder, shapes, **kw)
-        if est or not _has_corners(features):
-            return est
-        # the outline's homography can be bent by what lies on a worn edge (a held-back worn
-        # image: its corners up to 21 px off, the band found on 9 of 40 segments): the corners'
-        # pose is the second start
-        first = est
+        if outline is not None:
+            est = m.refine(outline, features, camera, holder, shapes, **kw)
+            if est or not _has_corners(features):
+                return est
+            outline_failed = est.reason
     start = _solve(m.base, features.corners_px, camera, holder, limits, features.order,
                    features.H_ideal_holder)
     est = m.refine(start, features, camera, holder, shapes, **kw)
-    if outline is not None:
-        est.info["outline_start_failed"] = first.reason
+    if outline_failed is not None:
+        est.info["outline_start_failed"] = outline_failed
     return est
 
 
@@ -543,16 +548,19 @@ def band_verdict(est: PoseEstimate, limits: QualityLimits) -> Quality:
 
 
 def measure_features(features: Features, camera: Camera, holder: Holder, method: str = "dm+b",
-                     limits: QualityLimits | None = None, edge_look=None) -> Measurement:
+                     limits: QualityLimits | None = None, edge_look=None, *,
+                     outline_failed: str | None = None) -> Measurement:
     """Pose, std and verdict from already detected features (one image, several methods).
     ``edge_look``: the edge look calibrated in the cell
-    (:class:`cutterpose.calibration.edge_look.EdgeLookCalibration`; ``dm+b`` only)."""
+    (:class:`cutterpose.calibration.edge_look.EdgeLookCalibration`; ``dm+b`` only).
+    ``outline_failed``: the reason a refinement from the outline's pose already failed on
+    this image (:func:`_refine`): it starts from the corners' pose directly."""
     limits = limits or QualityLimits()
     timings = dict(features.timings_ms)
     t0 = time.perf_counter()
     try:
         if get_method(method).base is not None:
-            est = _refine(method, features, camera, holder, limits, edge_look)
+            est = _refine(method, features, camera, holder, limits, edge_look, outline_failed)
         else:
             est = _solve(method, features.corners_px, camera, holder, limits, features.order,
                          features.H_ideal_holder)
@@ -697,17 +705,15 @@ def measure(image, camera: Camera | None = None, holder: Holder | None = None,
     m = measure_features(feats, camera, holder, method, limits, edge_look)
     if (m.pose is None and feats.segmentation == "outline" and m.estimate is not None
             and not m.estimate):
-        # the band found nothing from the outline's pose: the corners, then their pose as the
-        # start (_refine); the first attempt's time stays in the total
+        # the refinement found nothing from the outline's pose: the corners, and their pose
+        # as the start (_refine); the first attempt's time stays in the total
         try:
             feats = detect_features(image, camera, holder, params, corners=True)
         except FeatureError:
             pass
         else:
-            first_reason = m.estimate.reason
-            m = measure_features(feats, camera, holder, method, limits, edge_look)
-            if m.estimate is not None:
-                m.estimate.info.setdefault("outline_start_failed", first_reason)
+            m = measure_features(feats, camera, holder, method, limits, edge_look,
+                                 outline_failed=m.estimate.reason)
     if load_ms:
         m.timings_ms = {"load": load_ms} | m.timings_ms
     m.timings_ms["total"] = (time.perf_counter() - t0) * 1e3

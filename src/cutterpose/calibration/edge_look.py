@@ -359,20 +359,20 @@ class _Workers:
     messages (the 4 parameters in, the residuals out) a millisecond."""
 
     def __init__(self, refs, views, base, workers: int):
-        from concurrent.futures import ProcessPoolExecutor
+        from ..parallel import JobRunner
 
         self.n = len(refs)
         self.chunks = [c for c in np.array_split(np.arange(self.n), workers) if len(c)]
-        self.pool = ProcessPoolExecutor(len(self.chunks), initializer=_worker_init,
-                                        initargs=(refs, views, base))
+        self.runner = JobRunner(len(self.chunks), initializer=_worker_init,
+                                initargs=(refs, views, base)).__enter__()
 
     def residuals(self, x, choice, scale) -> np.ndarray:
         jobs = [(c, np.asarray(x, float), [choice[i] for i in c], [scale[i] for i in c])
                 for c in self.chunks]
-        return np.concatenate(list(self.pool.map(_worker_residuals, jobs)))
+        return np.concatenate(self.runner.map(_worker_residuals, jobs))
 
     def close(self) -> None:
-        self.pool.shutdown()
+        self.runner.__exit__(None, None, None)
 
 
 _WORKER: dict = {}

@@ -649,11 +649,10 @@ def fit_band(bp: BandProfiles, camera: Camera, holder: Holder, R_cam_holder, t_c
     order = np.argsort(totals)
     best_i = int(order[0])
     n_eff = max(1, int(np.ceil(0.75 * int(bp.valid.sum()))))
-    full = coarse[best_i]
     # the chosen variant at each blur (one raw profile), then the plausible others at the
     # chosen blur
     fine = _fit_looks(bp, bank, [replace(candidates[best_i], blur_sigma_px=b) for b in blurs],
-                      full)
+                      coarse[best_i])
     best = min(fine, key=lambda lf: lf.total)
     plausible = []
     for i in order[1:]:
@@ -691,10 +690,6 @@ def _offset(fit: BandFit, looks: BandLooks | None, view: em.EdgeView) -> BandFit
     lean = view_lean(view, bp.edge, bp.frac)
 
     def moved(lf: LookFit) -> LookFit:
-        # a first pass's plausible look may stand on the coarse scan of a subset of the
-        # segments (only its look is used): left as it is
-        if len(lf.shift_px) != len(px):
-            return lf
         return lf.moved(looks.offsets.offset(lf.look.shape, lean), px)
 
     fit.best = moved(fit.best)

@@ -935,8 +935,7 @@ def distance_doc(distance_mm: tuple[float, float] | None) -> dict:
 def _set_item(args) -> tuple[dict, bytes]:
     """Render image ``i`` of a set; returns its ``truth.json`` entry and the PNG file's bytes
     (the caller writes it, so workers on other machines need no access to ``out_dir``)."""
-    i, seed, camera, holder, names, p, max_angle_deg, max_shift_mm, given = args[:9]
-    distance_mm = args[9] if len(args) > 9 else None
+    i, seed, camera, holder, names, p, max_angle_deg, max_shift_mm, given, distance_mm = args
     img_seed = int(np.random.SeedSequence([seed, i]).generate_state(1)[0])
     rng = np.random.default_rng(img_seed)
     pose = random_pose(rng, max_angle_deg, max_shift_mm, distance_mm)

@@ -219,9 +219,8 @@ def _irls_soft_l1(dof0, X, p, n, K, sd, c: float, max_iter: int = IRLS_MAX_ITER)
     in a few steps near the minimum, where plain reweighting (``W`` in both) crawls; far from
     it, where the loss's curvature all but vanishes, the reweighting step is the better one:
     each iteration tries both, halves each until it lowers the cost, and keeps the lower. The
-    minimum is the one SciPy's trust-region solver finds (tested);
-    written out because on ~80 points and 6 unknowns that solver's per-call overhead was most
-    of the pose fit's time.
+    minimum is the one SciPy's trust-region solver finds (tested); written out because on ~80
+    points and 6 unknowns that solver's per-call overhead was most of the pose fit's time.
 
     Returns ``(dof, z, w)`` at the solution.
     """
