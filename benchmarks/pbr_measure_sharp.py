@@ -18,7 +18,7 @@ import numpy as np
 from cutterpose.errors import CutterposeError
 from cutterpose.experiments.images import corner_rms, load_image_set
 from cutterpose.geometry.pose import Pose, pose_errors
-from cutterpose.pipeline import measure
+from cutterpose.pipeline import QualityLimits, measure
 from cutterpose.render.analytic import render_holder
 
 
@@ -55,7 +55,8 @@ def main():
         img_ana = render_holder(Pose(R, t), camera, holder, "easy", seed=e["seed"]).image
         for name, img in (("pbr", img_pbr), ("analytic", img_ana)):
             try:
-                m = measure(img, camera, holder, a.method)
+                # the sharp preset's edge, declared for the corner methods' verdict
+                m = measure(img, camera, holder, a.method, limits=QualityLimits(edge_break_mm=0))
                 ok, reason = m.ok, m.quality.reason
             except CutterposeError as ex:
                 m, ok, reason = None, False, str(ex)

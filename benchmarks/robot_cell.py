@@ -227,7 +227,8 @@ def run_endtoend(out: Path, holders: int, stations: int, preset: str) -> None:
 
     from cutterpose.calibration.handeye import load_handeye
     from cutterpose.geometry.holder import default_holder
-    from cutterpose.pipeline import measure
+    from cutterpose.pipeline import QualityLimits, measure
+    from cutterpose.render.analytic import preset as render_preset
     from cutterpose.render.analytic import render_holder
     from cutterpose.robot import RobotAccuracy, locate
 
@@ -254,7 +255,10 @@ def run_endtoend(out: Path, holders: int, stations: int, preset: str) -> None:
                 img_seed = int(rng.integers(1 << 31))
                 r = render_holder(cell.camera_view(a, T_bh), cam, holder, preset, seed=img_seed)
                 t0 = time.time()
-                m = measure(r.image, cam, holder, "dm+")
+                # the renderer's pocket edge as the holder's drawing would give it
+                m = measure(r.image, cam, holder, "dm+", limits=QualityLimits(
+                    edge_break_mm=render_preset(preset).edge_radius_mm
+                    * (1 + render_preset(preset).edge_radius_spread)))
                 res = locate(m, he, rep, acc, camera=cam, holder=holder)
                 row = {"seed": seed, "holder": h, "station": k, "ok": m.ok,
                        "verdict": res.grasp.verdict, "reason": res.grasp.reason,

@@ -65,7 +65,7 @@ def test_bad_input_clear_message_nonzero_exit(files, name, words):
 
 def test_json_and_overlay(files, tmp_path):
     res = _run(files / "good.png", "--camera", files / "cam.json", "--method", "opencv-ippe-lm",
-               "--json", "--overlay", tmp_path / "o.png")
+               "--edge-break-mm", "0", "--json", "--overlay", tmp_path / "o.png")
     assert res.exit_code == 0, res.output
     d = json.loads(res.stdout.strip())
     assert d["quality"]["ok"] is True

@@ -17,7 +17,7 @@ from cutterpose.errors import HolderModelError, InputError
 from cutterpose.geometry.camera_files import save_camera
 from cutterpose.geometry.holder import default_holder, holder_from_dict
 from cutterpose.geometry.pose import Pose, geodesic_deg
-from cutterpose.pipeline import Quality, measure
+from cutterpose.pipeline import Quality, QualityLimits, measure
 from cutterpose.render.analytic import render_holder
 from cutterpose.robot import GraspTolerance, RobotAccuracy, locate, measurement_covariance
 from cutterpose.robot.cell import RobotCell
@@ -130,7 +130,7 @@ def test_measure_in_the_base_frame_end_to_end(tmp_path, cam_quarter):
     # a quarter-resolution camera cannot resolve the edge's band (1 px per mm): the frames are
     # what this test is about, so the corner method
     m = measure(img.image, cam_quarter, HOLDER, method="dm+", handeye=he, T_base_flange=rep,
-                robot_accuracy=RobotAccuracy(0.03, 0.005))
+                robot_accuracy=RobotAccuracy(0.03, 0.005), limits=QualityLimits(edge_break_mm=0))
     assert m.ok, m.quality.reason
     err = np.linalg.norm(m.robot.T_base_grasp.pose.t_mm - T_bh.t_mm)
     assert err < 3.0 and geodesic_deg(m.robot.T_base_holder.pose.R, T_bh.R) < 0.5
@@ -144,7 +144,7 @@ def test_measure_in_the_base_frame_end_to_end(tmp_path, cam_quarter):
     res = CliRunner().invoke(app, ["measure", str(tmp_path / "img.png"), "--camera",
                                    str(tmp_path / "cam.json"), "--handeye",
                                    str(tmp_path / "he.json"), "--flange-pose", row, "--json",
-                                   "--method", "dm+"])
+                                   "--method", "dm+", "--edge-break-mm", "0"])
     assert res.exit_code in (0, 4), res.output
     d = json.loads(res.output.splitlines()[0])
     np.testing.assert_allclose(np.array(d["T_base_holder"])[:3, 3],

@@ -45,6 +45,14 @@ def log(message: str) -> None:
     typer.echo(message, err=True)
 
 
+def _edge_break_option():
+    return typer.Option(None, "--edge-break-mm", help="The pocket edge's largest break (mm) "
+                        "for the corner methods (dm, dm+, PnP), which see the broken edge, not "
+                        "the design edge: their verdict carries the pose shift of an edge seen "
+                        "anywhere up to this far outside it (default: not known, 1.5 mm; 0: a "
+                        "sharp edge). dm+b and dm+r measure the break and ignore it.")
+
+
 def _edge_look_option():
     """``--edge-look``, the same in every command that measures with ``dm+b``."""
     return typer.Option(None, "--edge-look", help="Edge look file from `calibrate-edge-look` "
@@ -350,6 +358,7 @@ def measure_cmd(
                                    "drawing gives it: round, chamfer, or unknown (default: dm+b "
                                    "tells them apart; dm+r's verdict then carries the chamfer's "
                                    "depth the contour cannot see)."),
+    edge_break_mm: float = _edge_break_option(),
     edge_look: str = _edge_look_option(),
     corners: bool = typer.Option(False, "--corners", help="Detect the corners even when the "
                                  "method does not need them (dm+b starts from the pocket "
@@ -406,8 +415,8 @@ def measure_cmd(
     from .pipeline import QualityLimits
 
     m = measure(img, cam, hol, method, params=FeatureParams.for_camera(cam, chain=chain),
-                limits=QualityLimits(edge_shape=edge_shape), edge_look=look,
-                corners=True if corners else None)
+                limits=QualityLimits(edge_shape=edge_shape, edge_break_mm=edge_break_mm),
+                edge_look=look, corners=True if corners else None)
     m.timings_ms = {"load": load_ms} | m.timings_ms
     if robot is not None:
         from .robot import locate
@@ -474,6 +483,7 @@ def experiment_images_cmd(
                               "no refinement, no fall-back)."),
     edge_shape: str = typer.Option("unknown", help="The pocket edge's break (holder drawing): "
                                    "round, chamfer or unknown (default: both shapes fitted)."),
+    edge_break_mm: float = _edge_break_option(),
     edge_look: str = _edge_look_option(),
 ):
     """Table 2 figures of every method on an image set (trials.csv, summary.md)."""
@@ -496,7 +506,8 @@ def experiment_images_cmd(
 
         look = _load_edge_look(edge_look)
         run_images(folder, names, out, workers=workers, limit=limit, scheduler=scheduler,
-                   params=chains[chain](), limits=QualityLimits(edge_shape=edge_shape),
+                   params=chains[chain](),
+                   limits=QualityLimits(edge_shape=edge_shape, edge_break_mm=edge_break_mm),
                    progress=lambda done, n: bar.update(task, completed=done, total=n),
                    edge_look=look)
     typer.echo(f"wrote {out}/trials.csv, summary.md, corners.csv, failures.csv")
@@ -581,6 +592,7 @@ def track_cmd(
     filter_: bool = typer.Option(False, "--filter", help="Also report a constant-velocity "
                                  "filtered pose (beside the raw one)."),
     json_lines: bool = typer.Option(False, "--json-lines", help="One JSON object per frame."),
+    edge_break_mm: float = _edge_break_option(),
     edge_look: str = _edge_look_option(),
 ):
     """Track the holder through a sequence: edges predicted from the previous pose, the full
@@ -595,8 +607,13 @@ def track_cmd(
 
     cam = _render_camera(camera)
     look = _load_edge_look(edge_look)
-    tracker = Tracker(cam, load_holder(holder) if holder else None, method, filter=filter_,
-                      edge_look=look)
+    from dataclasses import replace
+
+    from .tracking import approach_limits
+
+    limits = replace(approach_limits(), edge_break_mm=edge_break_mm)
+    tracker = Tracker(cam, load_holder(holder) if holder else None, method, limits=limits,
+                      filter=filter_, edge_look=look)
     size = parse_raw_size(raw) if raw else None
     modes, times, anchors = {}, [], 0
     for name, frame in _frames(source, size):

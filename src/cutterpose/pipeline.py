@@ -68,12 +68,16 @@ from .solvers.estimate import PoseEstimate
 
 __all__ = ["QualityLimits", "Quality", "Measurement", "measure", "measure_features",
            "order_for_model", "pose_std", "demo", "DOF_NAMES", "edge_wear_effect",
-           "band_budget", "band_verdict"]
+           "band_budget", "band_verdict", "edge_break_effect", "UNKNOWN_EDGE_BREAK_MM"]
 
 #: the pocket edge's break shapes a holder's drawing may give (QualityLimits.edge_shape)
 EDGE_SHAPES = ("round", "chamfer", "unknown")
 #: the shapes the band / radius fit tries for each of them
 EDGE_SHAPE_FITS = {"unknown": ("round", "chamfer"), "round": ("round",), "chamfer": ("chamfer",)}
+#: the pocket edge's largest break (mm) the corner methods' verdict assumes when the holder's is
+#: not given (``QualityLimits.edge_break_mm = None``): a new holder's machined edge break is
+#: 0.5-1.5 mm (issue 10), and a worn one's more (the darkening indicator's ``wear`` part)
+UNKNOWN_EDGE_BREAK_MM = 1.5
 
 DOF_NAMES = ("alpha_deg", "beta_deg", "gamma_deg", "X_mm", "Y_mm", "Z_mm")
 
@@ -105,11 +109,27 @@ class QualityLimits:
     #: profile; ``dm+r``, from the corners alone, cannot, and its budget then carries a
     #: chamfer's unseen depth, refusing nearly every pose: docs/RESULTS.md section 11)
     edge_shape: str = "unknown"
+    #: the largest break (mm, fillet radius or chamfer leg) the pocket edge may have, for the
+    #: methods that see only the edge's image, not the design edge (``dm``, ``dm+``, PnP): their
+    #: budget carries the pose shift of the seen edge lying anywhere between the design edge and
+    #: this far outside it (:func:`edge_break_effect`). ``None``: not known, 1.5 mm
+    #: (:data:`UNKNOWN_EDGE_BREAK_MM`); ``0``: a sharp edge (a lab holder, the analytic
+    #: renderer's default). ``dm+b`` and ``dm+r`` measure the break and ignore it.
+    edge_break_mm: float | None = None
 
     def __post_init__(self):
         if self.edge_shape not in EDGE_SHAPES:
             raise InputError(f"edge_shape must be one of {', '.join(EDGE_SHAPES)}, got "
                              f"{self.edge_shape!r}")
+        b = self.edge_break_mm
+        if b is not None and not (isinstance(b, (int, float)) and 0 <= b < math.inf):
+            raise InputError(f"edge_break_mm must be a finite number >= 0 or None, got {b!r}")
+
+    @property
+    def assumed_edge_break_mm(self) -> float:
+        """The break the corner methods' budget carries (:attr:`edge_break_mm` or, not given,
+        :data:`UNKNOWN_EDGE_BREAK_MM`)."""
+        return UNKNOWN_EDGE_BREAK_MM if self.edge_break_mm is None else float(self.edge_break_mm)
 
 
 @dataclass
@@ -328,6 +348,33 @@ def edge_wear_effect(pose: Pose, features: Features, camera: Camera, holder: Hol
     seen = np.repeat(np.isfinite(a).all(axis=1) & np.isfinite(b).all(axis=1), 2)
     shift = np.linalg.lstsq(J[seen], (b - a).ravel()[seen], rcond=None)[0]
     return np.abs(shift), float(np.median(off))
+
+
+def edge_break_effect(pose: Pose, camera: Camera, holder: Holder, seen: np.ndarray,
+                      offset_mm: float) -> np.ndarray:
+    """Signed pose shift (6,: deg, mm) of a corner method's fit when every pocket edge is seen
+    ``offset_mm`` outside the design edge, linearised at ``pose`` over the ``seen`` corners.
+
+    A broken edge (fillet or chamfer of size ``b``) images its intensity step somewhere
+    between the design edge and the break's line on the face, ``b`` outside it, depending on
+    the light and the view (issue 10): the corners of the seen lines are the design corners
+    moved by ``offset (o_(i-1) + o_i)`` (:func:`cutterpose.image.edge_model.model_corners_mm`).
+    A uniform offset is nearly a change of scale: at 600 mm, 1 mm moves the depth by ~4.5 mm,
+    and at a 10 deg tilt the tilt by ~0.7 deg (``docs/RESULTS.md``, section 11).
+    """
+    from .image.edge_model import model_corners_mm
+
+    dof = pose.dof
+    seen = np.asarray(seen, bool)
+    o_edge = holder.edge_normals
+    outward = np.stack([np.roll(o_edge, 1, axis=0), o_edge], axis=1)
+    moved = model_corners_mm(holder, np.full((holder.n_corners, 2), float(offset_mm)), outward)
+    X = moved @ pose.R.T + pose.t_mm
+    b = X[:, :2] / X[:, 2:3] @ camera.K[:2, :2].T + camera.K[:2, 2]
+    a = _project_ideal(dof, camera, holder)
+    J = _jacobian(pose, camera, holder)
+    rows = np.repeat(seen, 2)
+    return np.linalg.lstsq(J[rows], (b - a).ravel()[rows], rcond=None)[0]
 
 
 def _pose_cov(pose: Pose, corners_ideal_px: np.ndarray, camera: Camera, holder: Holder,
@@ -590,6 +637,15 @@ def measure_features(features: Features, camera: Camera, holder: Holder, method:
             if bias is not None and np.all(np.isfinite(bias)):
                 # a systematic error the residuals do not show
                 parts["wear"] = np.diag(bias ** 2)
+            brk = limits.assumed_edge_break_mm
+            if brk > 0:
+                # the seen edge lies 0..brk outside the design edge: as 1 sigma of brk / 2 its
+                # 3 sigma covers the whole range (rank one: the one offset moves every DOF)
+                seen = np.isfinite(_match_to_projection(
+                    np.asarray(features.corners_ideal_px, float),
+                    _project_ideal(pose.dof, camera, holder), features.order)).all(axis=1)
+                s = edge_break_effect(pose, camera, holder, seen, 0.5 * brk)
+                parts["edge break"] = np.outer(s, s)
             budget = budget_from_dof_cov(parts, pose.dof, limits.grasp_point_mm,
                                          limits.tolerance)
         std = budget.std_dof
@@ -598,6 +654,13 @@ def measure_features(features: Features, camera: Camera, holder: Holder, method:
     amb = ambiguity_ratio(est, features.corners_ideal_px, camera, holder,
                           order=features.order)
     q = _verdict(est, std, r, limits, amb, bias, offset_px, budget)
+    brk = budget.per_part_3sigma.get("edge break") if budget is not None else None
+    tol = limits.tolerance
+    if not q.ok and brk is not None and (brk[0] > tol.position_mm or brk[1] > tol.angle_deg):
+        # the break alone exceeds the tolerance: say what would make it measurable
+        q.reason += (f" ({method} sees the broken edge, not the design edge: a break up to "
+                     f"{limits.assumed_edge_break_mm:g} mm; dm+b measures it, or give the "
+                     "holder's break, 0 for a sharp edge)")
     if (q.ok and pose is not None and get_method(method).base is None
             and features.order == "holder"):
         # the corners may fit a wrong pose when few are seen (dm/dm+ need no correspondences):

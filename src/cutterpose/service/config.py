@@ -107,6 +107,8 @@ class _Tolerances(_Strict):
     tolerance: _BudgetTolerance | None = None
     grasp_point_mm: tuple[Finite, Finite, Finite] | None = None
     edge_shape: Literal["unknown", "round", "chamfer"] | None = None
+    #: the pocket edge's largest break for the corner methods' verdict (absent: not known)
+    edge_break_mm: float | None = Field(None, ge=0, allow_inf_nan=False)
 
     @field_validator("range_half_width_dof", "range_tolerance_dof", "max_std_dof",
                      "max_edge_bias_dof")

@@ -45,12 +45,14 @@ def reduced_camera_dict(factor: int = 4) -> dict:
 
 
 def write_cell(folder, factor: int = 4, token: str | None = None, handeye: dict | None = None,
-               method: str | None = None, **service) -> Path:
+               method: str | None = None, edge_break_mm: float | None = 0.0, **service) -> Path:
     """A cell file in ``folder`` with the camera binned by ``factor`` (1: the bundled Table 1
     camera), data in ``folder/data``, and ``service`` settings; with ``token`` a token file,
     with ``handeye`` (a hand-eye object, PROTOCOL.md) a hand-eye file. ``method`` defaults to
     ``dm+b`` at full resolution and ``dm+`` on a binned camera (whose 1-2 px per mm cannot
-    resolve the band of a broken edge)."""
+    resolve the band of a broken edge). ``edge_break_mm``: the holder's break for the corner
+    methods' verdict (default 0: :func:`render_images` draws sharp edges; None leaves it
+    unknown)."""
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     camera = "table1"
@@ -67,6 +69,8 @@ def write_cell(folder, factor: int = 4, token: str | None = None, handeye: dict 
     if handeye is not None:
         (folder / "handeye.json").write_text(json.dumps(handeye))
         lines.append('handeye = "handeye.json"')
+    if edge_break_mm is not None:
+        lines += ["", "[tolerances]", f"edge_break_mm = {float(edge_break_mm)!r}"]
     lines += ["", "[service]"]
     lines += [f"{k} = {json.dumps(v)}" for k, v in service.items()]
     path = folder / "cell.toml"
