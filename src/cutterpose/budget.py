@@ -27,8 +27,12 @@ Contributions, each a covariance of the estimate (the pose's six DOFs, and the e
   residuals (:func:`edge_variation_mm`) and a floor of ``kappa = 0.1`` (a tenth of the radius
   per edge; the measured part covers larger variations as far as the corners show them);
 * for methods without the edge model (``dm``, ``dm+``, PnP): ``noise`` is the 6-DOF Gauss-Newton
-  covariance of :func:`cutterpose.pipeline.pose_std` and ``wear`` the square of the pose shift the
-  edges' measured darkening may cause (:func:`cutterpose.pipeline.edge_wear_effect`).
+  covariance of :func:`cutterpose.pipeline.pose_std`, ``wear`` the square of the pose shift the
+  edges' measured darkening may cause (:func:`cutterpose.pipeline.edge_wear_effect`), and
+  ``edge break`` the break they cannot measure: the seen edge lies anywhere from the design edge
+  to ``b`` outside it (``b = QualityLimits.edge_break_mm``, 1.5 mm when not known), taken as
+  ``s s^T`` with ``s`` the pose shift of a uniform outward offset ``b / 2``
+  (:func:`cutterpose.pipeline.edge_break_effect`; its 3 sigma covers the whole range).
 
 The 6 x 6 pose covariance is then given in the camera frame as ``covariance_cam`` in the order
 ``(x, y, z [mm], rx, ry, rz [rad])``: the translation ``t_cam_holder`` and a small rotation about

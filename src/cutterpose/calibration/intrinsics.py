@@ -246,7 +246,9 @@ def _order_by_mark(gray: np.ndarray, grid: np.ndarray, plate: CirclePlate):
             raise FeatureError("grid corner block is degenerate")
         q = np.array([j + sj * a, i + si * a]) + offsets
         qh = np.c_[q, np.ones(len(q))] @ H.T
-        vals.append(np.nanmean(_sample(gray, qh[:, :2] / qh[:, 2:])))
+        v = _sample(gray, qh[:, :2] / qh[:, 2:])
+        v = v[np.isfinite(v)]          # all outside the image: NaN, refused below
+        vals.append(v.mean() if v.size else np.nan)
     vals = np.array(vals)
     # plate black/white levels: circle centres and the midpoints between circles
     black = np.median(_sample(gray, grid.reshape(-1, 2)))

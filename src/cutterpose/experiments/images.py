@@ -181,7 +181,13 @@ def run_images(folder, methods: list[str], out, workers: int = 1, params=None,
 
 
 def _q(x, q) -> str:
-    return "-" if not np.isfinite(x).any() else f"{np.nanpercentile(x, q):.3f}"
+    if not np.isfinite(x).any():
+        return "-"
+    # an image whose corners were not all found has an infinite RMS: a quantile that falls
+    # between two of them is inf (numpy's interpolation would give inf - inf = NaN)
+    with np.errstate(invalid="ignore"):
+        v = np.nanpercentile(x, q)
+    return "inf" if np.isnan(v) else f"{v:.3f}"
 
 
 def _notes(results, holder: Holder) -> str:
