@@ -30,8 +30,8 @@ alone. The verdict is an error budget (:mod:`cutterpose.budget`): noise, edge mo
 floor for ``dm+b``; noise, radius, edge model and edge variation for ``dm+r`` (the std above,
 the edge-wear shift and the edge break they cannot measure for the other methods),
 propagated to the position of a grasp point and to the rotation; a pose is refused when its
-3-sigma figures exceed the tolerance (1 mm, 0.3 deg), with the reason. The camera-frame 6 x 6 covariance is
-``Measurement.covariance_cam`` (order :data:`cutterpose.budget.COVARIANCE_CAM_ORDER`).
+3-sigma figures exceed the tolerance (1 mm, 0.3 deg), with the reason. The camera-frame 6 x 6
+covariance is ``Measurement.covariance_cam`` (order :data:`cutterpose.budget.COVARIANCE_CAM_ORDER`).
 
 Convention:
     Pose as in :mod:`cutterpose.geometry.pose` (holder in camera frame, mm, Z-Y-X Euler angles in
