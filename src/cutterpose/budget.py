@@ -31,8 +31,9 @@ Contributions, each a covariance of the estimate (the pose's six DOFs, and the e
   edges' measured darkening may cause (:func:`cutterpose.pipeline.edge_wear_effect`), and
   ``edge break`` the break they cannot measure: the seen edge lies anywhere from the design edge
   to ``b`` outside it (``b = QualityLimits.edge_break_mm``, 1.5 mm when not known), taken as
-  ``s s^T`` with ``s`` the pose shift of a uniform outward offset ``b / 2``
-  (:func:`cutterpose.pipeline.edge_break_effect`; its 3 sigma covers the whole range).
+  ``s s^T`` with ``s`` the pose shift of a uniform outward offset ``b / 3``
+  (:func:`cutterpose.pipeline.edge_break_effect`: its 3 sigma is the shift of the whole range,
+  a bound rather than a spread, since the seen edge's offset is one-sided and not corrected).
 
 The 6 x 6 pose covariance is then given in the camera frame as ``covariance_cam`` in the order
 ``(x, y, z [mm], rx, ry, rz [rad])``: the translation ``t_cam_holder`` and a small rotation about

@@ -639,12 +639,13 @@ def measure_features(features: Features, camera: Camera, holder: Holder, method:
                 parts["wear"] = np.diag(bias ** 2)
             brk = limits.assumed_edge_break_mm
             if brk > 0:
-                # the seen edge lies 0..brk outside the design edge: as 1 sigma of brk / 2 its
-                # 3 sigma covers the whole range (rank one: the one offset moves every DOF)
+                # the seen edge lies 0..brk outside the design edge, the pose bias with it:
+                # a 1 sigma of brk / 3 makes the 3-sigma figure that whole range's shift (rank
+                # one: the one offset moves every DOF)
                 seen = np.isfinite(_match_to_projection(
                     np.asarray(features.corners_ideal_px, float),
                     _project_ideal(pose.dof, camera, holder), features.order)).all(axis=1)
-                s = edge_break_effect(pose, camera, holder, seen, 0.5 * brk)
+                s = edge_break_effect(pose, camera, holder, seen, brk / 3.0)
                 parts["edge break"] = np.outer(s, s)
             budget = budget_from_dof_cov(parts, pose.dof, limits.grasp_point_mm,
                                          limits.tolerance)
