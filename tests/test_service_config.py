@@ -36,6 +36,7 @@ def test_tolerance_keys_are_quality_limit_fields():
     ("[service]\nworker = 2\n", "service.worker"),            # unknown key (typo)
     ("[tolerances]\nmax_std_dof = [1, 2, 3]\n", "tolerances.max_std_dof"),
     ("[tolerances]\nmax_std_dof = [1, 2, 3, 4, 5, -6]\n", "tolerances.max_std_dof"),
+    ("[tolerances]\nedge_break_mm = -0.5\n", "tolerances.edge_break_mm"),
     ("method = \"nope\"\n", "method"),
     ("camera = \"missing.json\"\n", "camera"),
     ("handeye = \"missing.json\"\n", "handeye"),
@@ -55,9 +56,11 @@ def test_a_bad_field_is_named(tmp_path, body, field):
 
 def test_tolerances_reach_the_limits(tmp_path):
     p = tmp_path / "cell.toml"
-    p.write_text("[tolerances]\nmax_rms_px = 0.7\nmax_std_dof = [1, 1, 1, 3, 3, 3]\n")
+    p.write_text("[tolerances]\nmax_rms_px = 0.7\nmax_std_dof = [1, 1, 1, 3, 3, 3]\n"
+                 "edge_break_mm = 0\n")
     lim = load_cell(p, env=ENV).limits
     assert lim.max_rms_px == 0.7 and lim.max_std_dof == (1, 1, 1, 3, 3, 3)
+    assert lim.edge_break_mm == 0 and QualityLimits().edge_break_mm is None
     assert lim.max_corner_residual_px == QualityLimits().max_corner_residual_px
 
 
