@@ -17,6 +17,7 @@ from cutterpose.pipeline import (
     UNKNOWN_EDGE_BREAK_MM,
     QualityLimits,
     edge_break_effect,
+    fit_offset,
     measure,
 )
 from cutterpose.render.analytic import render_holder
@@ -71,3 +72,17 @@ def test_edge_break_limits_are_validated():
     for bad in (-0.1, float("nan"), float("inf"), "1"):
         with pytest.raises(InputError, match="edge_break_mm"):
             QualityLimits(edge_break_mm=bad)
+
+
+def test_a_pose_off_the_corners_fit_carries_its_offset():
+    """dm's search or a linear PnP leaves its pose off the corners' least-squares pose: the
+    step to it is the budget's 'method' part (zero at the least-squares pose itself)."""
+    cam = default_camera("table1")
+    corners = cam.undistort_px(cam.project(POSE.apply(HOLDER.points_holder_mm)))
+    assert np.abs(fit_offset(POSE, corners, cam, HOLDER, "holder")).max() < 1e-6
+    moved = Pose.from_euler(*(POSE.dof + [0.05, -0.03, 0.01, 0.2, -0.1, 0.5]))
+    step = fit_offset(moved, corners, cam, HOLDER, "holder")
+    np.testing.assert_allclose(step, POSE.dof - moved.dof, atol=2e-3)
+    few = np.full_like(corners, np.nan)
+    few[:3] = corners[:3]
+    assert np.all(np.isnan(fit_offset(POSE, few, cam, HOLDER, "holder")))

@@ -189,7 +189,7 @@ def test_paper_chain_stays_selectable_without_edge_model():
     m = measure_features(f, cam, HOLDER, "dm", SMALL)
     assert m.method == "dm" and "radius_fit" not in m.estimate.info
     # the corners see the broken edge: a break not declared is in the budget
-    assert set(m.quality.budget.parts) == {"noise", "wear", "edge break"}
+    assert set(m.quality.budget.parts) == {"noise", "method", "wear", "edge break"}
 
 
 def test_bad_edge_look_and_radius_are_refused():

@@ -27,7 +27,10 @@ Contributions, each a covariance of the estimate (the pose's six DOFs, and the e
   residuals (:func:`edge_variation_mm`) and a floor of ``kappa = 0.1`` (a tenth of the radius
   per edge; the measured part covers larger variations as far as the corners show them);
 * for methods without the edge model (``dm``, ``dm+``, PnP): ``noise`` is the 6-DOF Gauss-Newton
-  covariance of :func:`cutterpose.pipeline.pose_std`, ``wear`` the square of the pose shift the
+  covariance of :func:`cutterpose.pipeline.pose_std`, ``method`` the step ``d`` from the pose to
+  the corners' least-squares pose (:func:`cutterpose.pipeline.fit_offset`; a pose that does not
+  minimise the residuals, as ``dm``'s search or a linear PnP, is off by it), as 1 sigma of
+  ``2 d / 3``, ``wear`` the square of the pose shift the
   edges' measured darkening may cause (:func:`cutterpose.pipeline.edge_wear_effect`), and
   ``edge break`` the break they cannot measure: the seen edge lies anywhere from the design edge
   to ``b`` outside it (``b = QualityLimits.edge_break_mm``, 1.5 mm when not known), taken as

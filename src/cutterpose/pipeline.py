@@ -68,7 +68,8 @@ from .solvers.estimate import PoseEstimate
 
 __all__ = ["QualityLimits", "Quality", "Measurement", "measure", "measure_features",
            "order_for_model", "pose_std", "demo", "DOF_NAMES", "edge_wear_effect",
-           "band_budget", "band_verdict", "edge_break_effect", "UNKNOWN_EDGE_BREAK_MM"]
+           "band_budget", "band_verdict", "edge_break_effect", "UNKNOWN_EDGE_BREAK_MM",
+           "fit_offset"]
 
 #: the pocket edge's break shapes a holder's drawing may give (QualityLimits.edge_shape)
 EDGE_SHAPES = ("round", "chamfer", "unknown")
@@ -377,6 +378,22 @@ def edge_break_effect(pose: Pose, camera: Camera, holder: Holder, seen: np.ndarr
     return np.linalg.lstsq(J[rows], (b - a).ravel()[rows], rcond=None)[0]
 
 
+def fit_offset(pose: Pose, corners_ideal_px: np.ndarray, camera: Camera, holder: Holder,
+               order: str = "contour") -> np.ndarray:
+    """(6,) DOF step (deg, mm) from ``pose`` to the least-squares pose of the seen corners: one
+    Gauss-Newton step, ``(J^T J)^-1 J^T r`` with ``r`` the residuals (detected minus
+    projected ideal px). Near zero for a pose that minimises them (``dm+``, PnP + LM); NaN
+    with fewer than 4 corners."""
+    dof = pose.dof
+    proj = _project_ideal(dof, camera, holder)
+    det = _match_to_projection(np.asarray(corners_ideal_px, float), proj, order)
+    seen = np.isfinite(det).all(axis=1)
+    if seen.sum() < 4:
+        return np.full(6, np.nan)
+    J = _jacobian(pose, camera, holder)[np.repeat(seen, 2)]
+    return np.linalg.lstsq(J, (det - proj)[seen].ravel(), rcond=None)[0]
+
+
 def _pose_cov(pose: Pose, corners_ideal_px: np.ndarray, camera: Camera, holder: Holder,
               order: str = "contour") -> tuple[np.ndarray, np.ndarray]:
     """(6, 6) ``s^2 (J^T J)^-1`` over the seen corners (module doc) and the residuals."""
@@ -634,6 +651,14 @@ def measure_features(features: Features, camera: Camera, holder: Holder, method:
         else:
             cov, r = _pose_cov(pose, features.corners_ideal_px, camera, holder, features.order)
             parts = {"noise": np.where(np.isfinite(cov), cov, np.inf)}
+            off_fit = fit_offset(pose, features.corners_ideal_px, camera, holder, features.order)
+            if np.all(np.isfinite(off_fit)):
+                # a method that does not minimise the corners' residuals (dm's search, the
+                # linear PnP) is off their least-squares pose by more than the noise: that
+                # step d is an error of its own (~0 for dm+ and the +lm methods). As 1 sigma
+                # of 2/3 d, the 3-sigma figure sqrt(9 s^2 + 4 d^2) is at least |d| + 3 s
+                # whenever |d| >= 2 s (s the noise's sigma), and within 10 % of it below
+                parts["method"] = (4.0 / 9.0) * np.outer(off_fit, off_fit)
             if bias is not None and np.all(np.isfinite(bias)):
                 # a systematic error the residuals do not show
                 parts["wear"] = np.diag(bias ** 2)
