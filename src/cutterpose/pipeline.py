@@ -352,7 +352,7 @@ def edge_wear_effect(pose: Pose, features: Features, camera: Camera, holder: Hol
 
 
 def edge_break_effect(pose: Pose, camera: Camera, holder: Holder, seen: np.ndarray,
-                      offset_mm: float) -> np.ndarray:
+                      offset_mm: float, J: np.ndarray | None = None) -> np.ndarray:
     """Signed pose shift (6,: deg, mm) of a corner method's fit when every pocket edge is seen
     ``offset_mm`` outside the design edge, linearised at ``pose`` over the ``seen`` corners.
 
@@ -361,7 +361,8 @@ def edge_break_effect(pose: Pose, camera: Camera, holder: Holder, seen: np.ndarr
     the light and the view (issue 10): the corners of the seen lines are the design corners
     moved by ``offset (o_(i-1) + o_i)`` (:func:`cutterpose.image.edge_model.model_corners_mm`).
     A uniform offset is nearly a change of scale: at 600 mm, 1 mm moves the depth by ~4.5 mm,
-    and at a 10 deg tilt the tilt by ~0.7 deg (``docs/RESULTS.md``, section 11).
+    and at a 10 deg tilt the tilt by ~0.7 deg (``docs/RESULTS.md``, section 11). ``J``: the
+    (2N, 6) :func:`_jacobian` at ``pose`` when already computed.
     """
     from .image.edge_model import model_corners_mm
 
@@ -373,24 +374,24 @@ def edge_break_effect(pose: Pose, camera: Camera, holder: Holder, seen: np.ndarr
     X = moved @ pose.R.T + pose.t_mm
     b = X[:, :2] / X[:, 2:3] @ camera.K[:2, :2].T + camera.K[:2, 2]
     a = _project_ideal(dof, camera, holder)
-    J = _jacobian(pose, camera, holder)
+    J = _jacobian(pose, camera, holder) if J is None else J
     rows = np.repeat(seen, 2)
     return np.linalg.lstsq(J[rows], (b - a).ravel()[rows], rcond=None)[0]
 
 
 def fit_offset(pose: Pose, corners_ideal_px: np.ndarray, camera: Camera, holder: Holder,
-               order: str = "contour") -> np.ndarray:
+               order: str = "contour", J: np.ndarray | None = None) -> np.ndarray:
     """(6,) DOF step (deg, mm) from ``pose`` to the least-squares pose of the seen corners: one
     Gauss-Newton step, ``(J^T J)^-1 J^T r`` with ``r`` the residuals (detected minus
     projected ideal px). Near zero for a pose that minimises them (``dm+``, PnP + LM); NaN
-    with fewer than 4 corners."""
+    with fewer than 4 corners. ``J``: the (2N, 6) :func:`_jacobian` at ``pose`` if known."""
     dof = pose.dof
     proj = _project_ideal(dof, camera, holder)
     det = _match_to_projection(np.asarray(corners_ideal_px, float), proj, order)
     seen = np.isfinite(det).all(axis=1)
     if seen.sum() < 4:
         return np.full(6, np.nan)
-    J = _jacobian(pose, camera, holder)[np.repeat(seen, 2)]
+    J = (_jacobian(pose, camera, holder) if J is None else J)[np.repeat(seen, 2)]
     return np.linalg.lstsq(J, (det - proj)[seen].ravel(), rcond=None)[0]
 
 
@@ -651,7 +652,9 @@ def measure_features(features: Features, camera: Camera, holder: Holder, method:
         else:
             cov, r = _pose_cov(pose, features.corners_ideal_px, camera, holder, features.order)
             parts = {"noise": np.where(np.isfinite(cov), cov, np.inf)}
-            off_fit = fit_offset(pose, features.corners_ideal_px, camera, holder, features.order)
+            J_pose = _jacobian(pose, camera, holder)
+            off_fit = fit_offset(pose, features.corners_ideal_px, camera, holder, features.order,
+                                 J_pose)
             if np.all(np.isfinite(off_fit)):
                 # a method that does not minimise the corners' residuals (dm's search, the
                 # linear PnP) is off their least-squares pose by more than the noise: that
@@ -670,7 +673,7 @@ def measure_features(features: Features, camera: Camera, holder: Holder, method:
                 seen = np.isfinite(_match_to_projection(
                     np.asarray(features.corners_ideal_px, float),
                     _project_ideal(pose.dof, camera, holder), features.order)).all(axis=1)
-                s = edge_break_effect(pose, camera, holder, seen, brk / 3.0)
+                s = edge_break_effect(pose, camera, holder, seen, brk / 3.0, J_pose)
                 parts["edge break"] = np.outer(s, s)
             budget = budget_from_dof_cov(parts, pose.dof, limits.grasp_point_mm,
                                          limits.tolerance)
