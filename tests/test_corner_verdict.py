@@ -69,7 +69,8 @@ def test_a_break_not_measured_refuses_the_corner_pose_and_says_why():
 def test_edge_break_limits_are_validated():
     assert QualityLimits().assumed_edge_break_mm == UNKNOWN_EDGE_BREAK_MM
     assert QualityLimits(edge_break_mm=0).assumed_edge_break_mm == 0.0
-    for bad in (-0.1, float("nan"), float("inf"), "1"):
+    assert QualityLimits(edge_break_mm=np.float32(0.5)).assumed_edge_break_mm == 0.5
+    for bad in (-0.1, float("nan"), float("inf"), "1", True):
         with pytest.raises(InputError, match="edge_break_mm"):
             QualityLimits(edge_break_mm=bad)
 

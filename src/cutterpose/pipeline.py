@@ -43,6 +43,7 @@ from __future__ import annotations
 
 import json
 import math
+import numbers
 import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -123,7 +124,8 @@ class QualityLimits:
             raise InputError(f"edge_shape must be one of {', '.join(EDGE_SHAPES)}, got "
                              f"{self.edge_shape!r}")
         b = self.edge_break_mm
-        if b is not None and not (isinstance(b, (int, float)) and 0 <= b < math.inf):
+        if b is not None and (isinstance(b, bool) or not isinstance(b, numbers.Real)
+                              or not 0 <= b < math.inf):
             raise InputError(f"edge_break_mm must be a finite number >= 0 or None, got {b!r}")
 
     @property
