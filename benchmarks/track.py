@@ -57,7 +57,7 @@ def render(out: Path, camera, holder, n, drop=(), jump_at=None, reuse: Path | No
 def run(files, camera, holder, out: Path, with_full: bool):
     # the analytic "easy" frames have a sharp pocket edge: declared for dm+'s verdict
     limits = replace(approach_limits(), edge_break_mm=0.0)
-    tracker = Tracker(camera, holder, limits=limits, filter=True)
+    tracker = Tracker(camera, holder, "dm+", limits=limits, filter=True)
     rows = []
     for k, truth, f in files:
         img = load_frame(f)

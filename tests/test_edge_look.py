@@ -470,9 +470,10 @@ def test_tracker_fits_the_calibrated_look(new_holder):
 
     pose, img, cal, _ = new_holder
     limits = QualityLimits(edge_shape="unknown")
-    plain = Tracker(CAM, HOLDER, "dm+b", limits=limits).update(img)
+    plain = Tracker(CAM, HOLDER, limits=limits).update(img)     # dm+b: the default
     calib = Tracker(CAM, HOLDER, "dm+b", limits=limits, edge_look=cal).update(img)
     assert plain.mode == calib.mode == "full"
+    assert plain.measurement.method == calib.measurement.method == "dm+b"
     b0 = plain.measurement.estimate.info["band"]
     b1 = calib.measurement.estimate.info["band"]
     assert not b0.calibrated and b1.calibrated

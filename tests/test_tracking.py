@@ -91,7 +91,7 @@ def test_approach_poses_drop_and_jump():
 
 def test_tracker_on_an_approach_with_a_dropped_frame_and_a_jump(sequence):
     d, truth = sequence
-    tracker = Tracker(CAM, default_holder(), limits=SHARP, filter=True)
+    tracker = Tracker(CAM, default_holder(), "dm+", limits=SHARP, filter=True)
     results, frames = [], [e["frame"] for e in truth["images"]]
     for e in truth["images"]:
         results.append(tracker.update(d / e["file"]))
@@ -121,7 +121,7 @@ def test_tracker_on_an_approach_with_a_dropped_frame_and_a_jump(sequence):
 def test_track_cli_json_lines(sequence):
     d, truth = sequence
     r = runner.invoke(app, ["track", str(d), "--camera", str(d / "cam.json"), "--json-lines",
-                            "--filter", "--edge-break-mm", "0"])
+                            "--filter", "--method", "dm+", "--edge-break-mm", "0"])
     assert r.exit_code == 0, r.output
     lines = [json.loads(x) for x in r.stdout.splitlines() if x.startswith("{")]
     assert [x["file"] for x in lines] == [e["file"] for e in truth["images"]]
@@ -149,7 +149,7 @@ def test_track_cli_reads_a_video(sequence, tmp_path):
         vw.write(cv2.imread(str(d / e["file"]), cv2.IMREAD_GRAYSCALE))
     vw.release()
     r = runner.invoke(app, ["track", str(path), "--camera", str(d / "cam.json"),
-                            "--json-lines", "--edge-break-mm", "0"])
+                            "--json-lines", "--method", "dm+", "--edge-break-mm", "0"])
     assert r.exit_code == 0, r.output
     lines = [json.loads(x) for x in r.stdout.splitlines() if x.startswith("{")]
     assert [x["file"] for x in lines] == ["approach.avi#0", "approach.avi#1", "approach.avi#2"]
@@ -176,7 +176,7 @@ def test_tracker_on_a_field_sequence_tracks_within_the_band(field_sequence):
     (saying why) and is tracked again on the next frame."""
     d, truth = field_sequence
     hol = default_holder()
-    tracker = Tracker(FIELD_CAM, hol, limits=SHARP)
+    tracker = Tracker(FIELD_CAM, hol, "dm+", limits=SHARP)
     frames = [e["frame"] for e in truth["images"]]
     results = [tracker.update(d / e["file"]) for e in truth["images"]]
     modes = [r.mode for r in results]
@@ -204,7 +204,7 @@ def test_tracker_falls_back_when_too_few_edges_are_seen(field_sequence):
     d, truth = field_sequence
     import cv2
 
-    tracker = Tracker(FIELD_CAM, default_holder(), limits=SHARP)
+    tracker = Tracker(FIELD_CAM, default_holder(), "dm+", limits=SHARP)
     first, second = (cv2.imread(str(d / e["file"]), cv2.IMREAD_GRAYSCALE)
                      for e in truth["images"][:2])
     assert tracker.update(first).mode == "full"

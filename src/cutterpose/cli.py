@@ -584,10 +584,12 @@ def track_cmd(
     source: str = typer.Argument(..., help="Folder of frames (sorted by name) or a video."),
     camera: str = typer.Option(None, help="table1 (default), synthetic, or a camera file."),
     holder: str = typer.Option(None, help="Holder JSON file (default: the bundled holder)."),
-    method: str = typer.Option("dm+", help="Pose method of the full measurement (first frame "
-                               "and fall-backs; dm+b: ~0.2 s, and the tracked frames fit the "
-                               "design edge of a broken edge, its offsets measured again by "
-                               "a band fit as the view changes: 'anchor' per frame)."),
+    method: str = typer.Option("dm+b", help="Pose method of the full measurement (first "
+                               "frame and fall-backs; dm+b, the default: the tracked frames fit "
+                               "the design edge of a broken edge, its offsets measured again by "
+                               "a band fit as the view changes, 'anchor' per frame; dm+: the "
+                               "seen edges, for a sharp edge (--edge-break-mm 0) or a binned "
+                               "camera)."),
     raw: str = typer.Option(None, "--raw", help="Frames are raw Mono8 files of WIDTHxHEIGHT."),
     filter_: bool = typer.Option(False, "--filter", help="Also report a constant-velocity "
                                  "filtered pose (beside the raw one)."),

@@ -72,7 +72,9 @@ length on the holder; then the fitted pose is the design edge's directly.
 * **std**: a tracked pose inherits the error of the pose its offsets were measured at, so its
   std is the fit's and the last anchor's ``dm+b`` std in quadrature.
 
-``method="dm+"`` tracks the design model itself, as before (no offsets, no re-anchoring).
+``method="dm+"`` tracks the design model itself (no offsets, no re-anchoring): right for a
+sharp edge (declare it, ``QualityLimits.edge_break_mm = 0``; otherwise its verdict carries a
+break it cannot see and refuses) or a binned camera that cannot resolve the band.
 
 **Temporal filter** (optional, ``filter=True``): an alpha-beta filter, the steady-state Kalman
 filter of a constant-velocity model, on SE(3): state ``T`` and a per-frame twist ``xi``;
@@ -389,11 +391,12 @@ class Tracker:
     Parameters
     ----------
     camera, holder : defaults: the Table 1 camera and ``holder.json``.
-    method : the full measurement's pose method (first frame and fall-backs). With ``dm+b``
-        (and ``dm+r``) the tracker fits the design contour moved edge by edge onto the edges it
-        tracks (the innermost rise of the broken edge), the offsets measured at the full
-        measurement; ``dm+b`` measures them again from the tracked pose as the view changes
-        (module doc, "Broken edges").
+    method : the full measurement's pose method (first frame and fall-backs; default ``dm+b``,
+        as :func:`~cutterpose.pipeline.measure`'s). With ``dm+b`` (and ``dm+r``) the tracker
+        fits the design contour moved edge by edge onto the edges it tracks (the innermost
+        rise of the broken edge), the offsets measured at the full measurement; ``dm+b``
+        measures them again from the tracked pose as the view changes (module doc, "Broken
+        edges").
     params, limits : the full measurement's image parameters and quality limits (default: an
         approach from 940 to 580 mm, :func:`approach_params` and :func:`approach_limits`).
     track : :class:`TrackParams`.
@@ -411,7 +414,7 @@ class Tracker:
     """
 
     def __init__(self, camera: Camera | None = None, holder: Holder | None = None,
-                 method: str = "dm+", params: FeatureParams | None = None,
+                 method: str = "dm+b", params: FeatureParams | None = None,
                  limits: QualityLimits | None = None, track: TrackParams | None = None,
                  filter: bool = False, edge_look=None):
         self.camera = camera or default_camera("table1")
