@@ -381,37 +381,48 @@ def edge_break_effect(pose: Pose, camera: Camera, holder: Holder, seen: np.ndarr
     return np.linalg.lstsq(J[rows], (b - a).ravel()[rows], rcond=None)[0]
 
 
+def _corner_fit(pose: Pose, corners_ideal_px: np.ndarray, camera: Camera, holder: Holder,
+                order: str = "contour") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The corners against the model at ``pose``: which are seen (N,), the (2N, 6)
+    :func:`_jacobian` of all of them, and the seen ones' residuals (n, 2: detected minus
+    projected ideal px, model order)."""
+    proj = _project_ideal(pose.dof, camera, holder)
+    det = _match_to_projection(np.asarray(corners_ideal_px, float), proj, order)
+    seen = np.isfinite(det).all(axis=1)
+    return seen, _jacobian(pose, camera, holder), (det - proj)[seen]
+
+
+def _least_squares_step(J_seen: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """(6,) Gauss-Newton step ``(J^T J)^-1 J^T r`` (NaN with fewer than 4 corners)."""
+    if len(r) < 4:
+        return np.full(6, np.nan)
+    return np.linalg.lstsq(J_seen, r.ravel(), rcond=None)[0]
+
+
 def fit_offset(pose: Pose, corners_ideal_px: np.ndarray, camera: Camera, holder: Holder,
-               order: str = "contour", J: np.ndarray | None = None) -> np.ndarray:
+               order: str = "contour") -> np.ndarray:
     """(6,) DOF step (deg, mm) from ``pose`` to the least-squares pose of the seen corners: one
     Gauss-Newton step, ``(J^T J)^-1 J^T r`` with ``r`` the residuals (detected minus
     projected ideal px). Near zero for a pose that minimises them (``dm+``, PnP + LM); NaN
-    with fewer than 4 corners. ``J``: the (2N, 6) :func:`_jacobian` at ``pose`` if known."""
-    dof = pose.dof
-    proj = _project_ideal(dof, camera, holder)
-    det = _match_to_projection(np.asarray(corners_ideal_px, float), proj, order)
-    seen = np.isfinite(det).all(axis=1)
-    if seen.sum() < 4:
-        return np.full(6, np.nan)
-    J = (_jacobian(pose, camera, holder) if J is None else J)[np.repeat(seen, 2)]
-    return np.linalg.lstsq(J, (det - proj)[seen].ravel(), rcond=None)[0]
+    with fewer than 4 corners."""
+    seen, J, r = _corner_fit(pose, corners_ideal_px, camera, holder, order)
+    return _least_squares_step(J[np.repeat(seen, 2)], r)
+
+
+def _noise_cov(J_seen: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """(6, 6) ``s^2 (J^T J)^-1`` (module doc), NaN when ``J`` is singular."""
+    s2 = float(np.sum(r ** 2)) / max(r.size - 6, 1)
+    try:
+        return s2 * np.linalg.inv(J_seen.T @ J_seen)
+    except np.linalg.LinAlgError:
+        return np.full((6, 6), np.nan)
 
 
 def _pose_cov(pose: Pose, corners_ideal_px: np.ndarray, camera: Camera, holder: Holder,
               order: str = "contour") -> tuple[np.ndarray, np.ndarray]:
     """(6, 6) ``s^2 (J^T J)^-1`` over the seen corners (module doc) and the residuals."""
-    dof = pose.dof
-    proj = _project_ideal(dof, camera, holder)
-    det = _match_to_projection(np.asarray(corners_ideal_px, float), proj, order)
-    seen = np.isfinite(det).all(axis=1)
-    r = (det - proj)[seen]
-    J = _jacobian(pose, camera, holder)[np.repeat(seen, 2)]
-    s2 = float(np.sum(r ** 2)) / max(r.size - 6, 1)
-    try:
-        cov = s2 * np.linalg.inv(J.T @ J)
-    except np.linalg.LinAlgError:
-        cov = np.full((6, 6), np.nan)
-    return cov, r
+    seen, J, r = _corner_fit(pose, corners_ideal_px, camera, holder, order)
+    return _noise_cov(J[np.repeat(seen, 2)], r), r
 
 
 def pose_std(pose: Pose, corners_ideal_px: np.ndarray, camera: Camera, holder: Holder,
@@ -652,11 +663,12 @@ def measure_features(features: Features, camera: Camera, holder: Holder, method:
             budget = budget_from_fit(fit, camera, holder, limits.grasp_point_mm,
                                      limits.tolerance)
         else:
-            cov, r = _pose_cov(pose, features.corners_ideal_px, camera, holder, features.order)
+            seen, J_all, r = _corner_fit(pose, features.corners_ideal_px, camera, holder,
+                                         features.order)
+            J_seen = J_all[np.repeat(seen, 2)]
+            cov = _noise_cov(J_seen, r)
             parts = {"noise": np.where(np.isfinite(cov), cov, np.inf)}
-            J_pose = _jacobian(pose, camera, holder)
-            off_fit = fit_offset(pose, features.corners_ideal_px, camera, holder, features.order,
-                                 J_pose)
+            off_fit = _least_squares_step(J_seen, r)              # fit_offset
             if np.all(np.isfinite(off_fit)):
                 # a method that does not minimise the corners' residuals (dm's search, the
                 # linear PnP) is off their least-squares pose by more than the noise: that
@@ -672,10 +684,7 @@ def measure_features(features: Features, camera: Camera, holder: Holder, method:
                 # the seen edge lies 0..brk outside the design edge, the pose bias with it:
                 # a 1 sigma of brk / 3 makes the 3-sigma figure that whole range's shift (rank
                 # one: the one offset moves every DOF)
-                seen = np.isfinite(_match_to_projection(
-                    np.asarray(features.corners_ideal_px, float),
-                    _project_ideal(pose.dof, camera, holder), features.order)).all(axis=1)
-                s = edge_break_effect(pose, camera, holder, seen, brk / 3.0, J_pose)
+                s = edge_break_effect(pose, camera, holder, seen, brk / 3.0, J_all)
                 parts["edge break"] = np.outer(s, s)
             budget = budget_from_dof_cov(parts, pose.dof, limits.grasp_point_mm,
                                          limits.tolerance)
