@@ -8,7 +8,7 @@ from typer.testing import CliRunner
 
 from cutterpose.cli import app
 from cutterpose.errors import InputError
-from cutterpose.experiments.field import field_stats
+from cutterpose.experiments.field import field_markdown, field_stats
 from cutterpose.experiments.report import trial_rows, write_trials_csv
 from cutterpose.geometry.pose import Pose
 
@@ -51,3 +51,43 @@ def test_cli_writes_the_table_and_rejects_bad_pairs(tmp_path):
     assert res.exit_code != 0 and "NAME=RESULTS_DIR" in res.output
     with pytest.raises(InputError, match="verdicts.csv"):
         field_stats(tmp_path)
+
+
+def test_budget_honesty_from_budgets_csv(tmp_path):
+    """z = |e| / std per DOF, coverage by the 3-sigma figures, Mahalanobis^2 read back."""
+    _set(tmp_path / "s", [0.1, -0.4, 2.0], [1, 1, 0])
+    with open(tmp_path / "s" / "budgets.csv", "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["trial", "method", "position_3sigma_mm", "angle_3sigma_deg",
+                    "std_alpha_deg", "std_beta_deg", "std_gamma_deg", "std_X_mm", "std_Y_mm",
+                    "std_Z_mm", "mahalanobis2"])
+        # std Z 0.2 mm: the errors are 0.5, 2 and 10 std
+        for k, d2 in enumerate([0.25, 4.0, 100.0]):
+            w.writerow([k, "dm+", 0.6, 0.1, 0.01, 0.01, 0.01, 0.1, 0.1, 0.2, d2])
+    (s,) = field_stats(tmp_path / "s")
+    assert (s["budget_n"], s["budget_covered"], s["budget_covered_accepted"],
+            s["budget_accepted"]) == (3, 2, 2, 2)      # 2 mm > 0.6 mm: not covered
+    assert s["z_median"][5] == pytest.approx(2.0)
+    assert s["z_max"][5] == pytest.approx(10.0)
+    assert s["z_median"][0] == pytest.approx(0.0, abs=1e-9)
+    assert s["mahalanobis2_median"] == pytest.approx(4.0)
+    assert "| s | dm+ | 3 | 2/3; 2/2 |" in field_markdown([s])
+
+
+def test_budget_cells_carry_std_and_mahalanobis():
+    from cutterpose.budget import budget_from_dof_cov
+    from cutterpose.experiments.images import BUDGET_STD_COLUMNS, _budget_cells
+    from cutterpose.experiments.report import ERR_COLUMNS
+
+    C = np.diag([0.01, 0.04, 0.0001, 0.01, 0.01, 0.25])
+    C[0, 5] = C[5, 0] = 0.03
+    b = budget_from_dof_cov({"noise": C}, [1, 2, 3, 4, 5, 600])
+    e = np.array([0.1, -0.2, 0.01, 0.05, 0.0, 0.4])
+    row = dict(zip(ERR_COLUMNS, e))
+    cells = _budget_cells(b, row)
+    assert len(cells) == 3 + len(BUDGET_STD_COLUMNS)
+    assert [float(c) for c in cells[2:8]] == pytest.approx(np.sqrt(np.diag(C)), rel=1e-4)
+    assert float(cells[8]) == pytest.approx(e @ np.linalg.solve(C, e), rel=1e-4)
+    assert _budget_cells(None, row) == [""] * 9
+    row["Z_err_mm"] = np.nan                              # no pose: no distance
+    assert _budget_cells(b, row)[8] == ""

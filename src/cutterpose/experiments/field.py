@@ -11,7 +11,12 @@ per image set (e.g. ``sharp``, ``new``, ``worn``). Per set and method the table 
 * the accepted images that the robot should not have been given: translation error > 1 mm or
   rotation error > 0.5 deg (the issue's hard limit), counted;
 * over the refused images with a pose: their median translation error, to show whether the
-  refusals were needed.
+  refusals were needed;
+* whether the error budget describes the actual error (``budgets.csv``), over every image with
+  a pose, accepted or refused: the errors within its 3-sigma figures, the median of
+  ``|e_k| / sigma_k`` per DOF (0.674 when the budget is the error's covariance) and the median
+  squared Mahalanobis distance (5.35, the median of chi-square with 6 degrees of freedom). A
+  budget much wider than the errors refuses good poses; a narrower one accepts bad ones.
 
 Convention:
     Errors as in PROTOCOL.md (estimate - truth, degrees and mm); nothing is dropped: an image
@@ -30,6 +35,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
+from .images import BUDGET_STD_COLUMNS
 from .report import DOF_NAMES, DOF_UNITS, ERR_COLUMNS, read_trials_csv
 
 __all__ = ["field_stats", "field_markdown", "BAD_TRANS_MM", "BAD_ROT_DEG"]
@@ -58,6 +64,7 @@ def field_stats(folder, name: str | None = None) -> list[dict]:
     """Statistics per method of one ``experiment images`` output folder (module docstring)."""
     folder = Path(folder)
     verdicts = _read_verdicts(folder)
+    budgets = _read_budgets(folder)
     rows = read_trials_csv(folder / "trials.csv")
     out = []
     for m in dict.fromkeys(r["method"] for r in rows):
@@ -72,6 +79,7 @@ def field_stats(folder, name: str | None = None) -> list[dict]:
         reasons = Counter(_reason_class(verdicts.get((int(r["trial"]), m), (False, "?"))[1])
                           for r, ok in zip(sel, acc) if not ok)
         ref_pose = ~acc & has
+        honesty = _budget_honesty(budgets, sel, m, E, rot, trans, acc)
         out.append({
             "set": name or folder.name, "method": m, "n": len(sel),
             "accepted": int(a.sum()), "refused": int((~acc).sum()),
@@ -83,8 +91,48 @@ def field_stats(folder, name: str | None = None) -> list[dict]:
             "accepted_bad": int(bad.sum()),
             "refused_trans_median_mm": _pct(trans[ref_pose], 50),
             "refusals": dict(reasons.most_common()),
+            **honesty,
         })
     return out
+
+
+def _read_budgets(folder: Path) -> dict:
+    """``budgets.csv`` as {(trial, method): row}; {} when absent (older runs)."""
+    path = folder / "budgets.csv"
+    if not path.is_file():
+        return {}
+    with open(path, newline="") as fh:
+        return {(int(r["trial"]), r["method"]): r for r in csv.DictReader(fh)}
+
+
+def _num(row: dict, col: str) -> float:
+    v = row.get(col, "") if row else ""
+    return float(v) if v not in ("", None) else math.nan
+
+
+def _budget_honesty(budgets: dict, sel: list, m: str, E, rot, trans, acc) -> dict:
+    """Does the budget describe the actual error? Over every image with a pose and a budget
+    (accepted and refused alike): how many errors lie within the 3-sigma figures (rotation and
+    translation at the grasp point, the origin by default), the median ``|e_k| / sigma_k`` per
+    DOF (0.674 for a budget that is the error's covariance; smaller: the budget is wider than
+    the errors), and the median squared Mahalanobis distance (5.35 for 6 DOF)."""
+    b = [budgets.get((int(r["trial"]), m)) for r in sel]
+    S = np.array([[_num(x, c) for c in BUDGET_STD_COLUMNS] for x in b], float).reshape(-1, 6)
+    d2 = np.array([_num(x, "mahalanobis2") for x in b], float)
+    pos3 = np.array([_num(x, "position_3sigma_mm") for x in b], float)
+    ang3 = np.array([_num(x, "angle_3sigma_deg") for x in b], float)
+    ok = np.all(np.isfinite(E), axis=1) & np.all(np.isfinite(S), axis=1) & (S > 0).all(axis=1)
+    if not ok.any():
+        return {"budget_n": 0}
+    z = np.abs(E[ok]) / S[ok]
+    cov = (rot[ok] <= ang3[ok]) & (trans[ok] <= pos3[ok])
+    acc_ok = acc[ok]
+    return {"budget_n": int(ok.sum()), "budget_covered": int(cov.sum()),
+            "budget_covered_accepted": int((cov & acc_ok).sum()),
+            "budget_accepted": int(acc_ok.sum()),
+            "z_median": np.median(z, axis=0).tolist(),
+            "z_max": z.max(axis=0).tolist(),
+            "mahalanobis2_median": _pct(d2[ok][np.isfinite(d2[ok])], 50)}
 
 
 def _agg(E, fn):
@@ -121,6 +169,23 @@ def field_markdown(stats: list[dict]) -> str:
             rs = "; ".join(f"{k}: {v}" for k, v in s["refusals"].items())
             lines.append(f"- {s['set']} / {s['method']}: {rs} (refused poses: median "
                          f"{_c(s['refused_trans_median_mm'], 2)} mm)")
+    hon = [s for s in stats if s.get("budget_n")]
+    if hon:
+        lines += ["", "The error budget against the actual error, over every image with a pose "
+                  "and a budget (accepted and refused): errors within the 3-sigma figures; the "
+                  "median |error| / std per DOF (0.67 when the budget is the error's "
+                  "covariance, smaller when it is wider) and its maximum; the median squared "
+                  "Mahalanobis distance (5.35 for 6 DOF).", "",
+                  "| set | method | with budget | within 3 sigma (all; accepted) | median |e|/std "
+                  + " / ".join(DOF_NAMES) + " | max |e|/std | median Mahalanobis^2 |",
+                  "|" + "---|" * 7]
+        for s in hon:
+            lines.append(
+                f"| {s['set']} | {s['method']} | {s['budget_n']} | {s['budget_covered']}/"
+                f"{s['budget_n']}; {s['budget_covered_accepted']}/{s['budget_accepted']} | "
+                + " / ".join(_c(v, 2) for v in s["z_median"]) + " | "
+                + " / ".join(_c(v, 1) for v in s["z_max"]) + " | "
+                f"{_c(s['mahalanobis2_median'], 1)} |")
     return "\n".join(lines) + "\n"
 
 
