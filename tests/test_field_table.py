@@ -91,3 +91,22 @@ def test_budget_cells_carry_std_and_mahalanobis():
     assert _budget_cells(None, row) == [""] * 9
     row["Z_err_mm"] = np.nan                              # no pose: no distance
     assert _budget_cells(b, row)[8] == ""
+
+
+def test_retakes_count_holders_by_their_first_accepted_view(tmp_path):
+    """Three holders x 2 views: holder 0 accepted at once, holder 1 on the retake (1.5 mm off:
+    counted as a bad used view), holder 2 never."""
+    _set(tmp_path / "r", [0.1, 0.2, 3.0, 1.5, 2.0, 2.5], [1, 1, 0, 1, 0, 0])
+    with open(tmp_path / "r" / "corners.csv", "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["trial", "file", "holder_index", "view"])
+        for k in range(6):
+            w.writerow([k, f"img_{k:04d}.png", k // 2, k % 2])
+    (s,) = field_stats(tmp_path / "r")
+    assert s["holders"] == 3
+    assert s["accepted_within_views"] == [1, 2]
+    assert s["retake_trans_max_mm"] == pytest.approx(1.5)     # holder 0 view 0, holder 1 view 1
+    assert s["retake_bad"] == 1
+    assert "| r | dm+ | 3 | 1 / 2 |" in field_markdown([s])
+    _set(tmp_path / "p", [0.1], [1])
+    assert "holders" not in field_stats(tmp_path / "p")[0]

@@ -267,3 +267,10 @@ def test_cli_render_and_render_set(tmp_path):
                                    str(tmp_path / "set"), "--camera", str(cam_file)])
     assert res.exit_code == 0, res.output
     assert len(json.loads((tmp_path / "set" / "truth.json").read_text())["images"]) == 2
+
+
+def test_cli_render_set_views_needs_pbr(tmp_path):
+    res = CliRunner().invoke(app, ["render-set", "--count", "2", "--views", "2",
+                                   "--out", str(tmp_path / "x")])
+    assert res.exit_code == 2 and "--views" in res.output and "pbr" in res.output
+    assert not (tmp_path / "x" / "truth.json").exists()

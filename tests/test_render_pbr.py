@@ -7,6 +7,7 @@ import sys
 import numpy as np
 import pytest
 
+from cutterpose.errors import InputError
 from cutterpose.geometry.camera import camera_from_dict, default_camera
 from cutterpose.geometry.holder import default_holder
 from cutterpose.geometry.pose import Pose
@@ -192,3 +193,29 @@ def test_pbr_approach_sequence_same_scene_fresh_noise(tmp_path, monkeypatch):
     monkeypatch.setitem(sys.modules, "mitsuba", None)
     with pytest.raises(pbr.MitsubaMissingError, match=r"\[field\]"):
         render_sequence(tmp_path / "none", 2, engine_name="pbr")
+
+
+def test_render_set_views_show_one_holder_from_several_poses(mi, tmp_path):
+    """--views: the same scene (wear, chips, slurry, textures), another pose and noise per view;
+    views=1 stays the plain set."""
+    cam = small_camera()
+    pbr.render_field_set(4, 7, tmp_path / "v", "worn", cam, variant="scalar_rgb", spp=1,
+                         views=2)
+    doc = json.loads((tmp_path / "v" / "truth.json").read_text())
+    im = doc["images"]
+    assert doc["views"] == 2
+    assert [(e["holder_index"], e["view"]) for e in im] == [(0, 0), (0, 1), (1, 0), (1, 1)]
+    assert im[0]["seed"] == im[1]["seed"] != im[2]["seed"]
+    assert im[0]["edge_profile"] == im[1]["edge_profile"]
+    assert im[0]["params"]["slurry"] == im[1]["params"]["slurry"]
+    assert im[0]["params"] != im[2]["params"]
+    assert not np.allclose(im[0]["dof"], im[1]["dof"])
+    pbr.render_field_set(1, 7, tmp_path / "one", "worn", cam, variant="scalar_rgb", spp=1)
+    one = json.loads((tmp_path / "one" / "truth.json").read_text())["images"][0]
+    # view 0 of holder h is image h of the plain set, the other views are retakes
+    assert "view" not in one and one["params"] == im[0]["params"]
+    assert one["dof"] == im[0]["dof"]
+    assert (tmp_path / "one" / "img_0000.png").read_bytes() == \
+        (tmp_path / "v" / "img_0000.png").read_bytes()
+    with pytest.raises(InputError, match="views"):
+        pbr.render_field_set(1, 7, tmp_path / "x", "worn", cam, views=0)

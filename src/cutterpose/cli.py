@@ -272,6 +272,9 @@ def render_set_cmd(
                                     "distance uniformly in it (mm) instead of 600 +- 20, the "
                                     "light auto-exposed as in render-sequence (e.g. an edge "
                                     "look reference over an approach: 580:920)."),
+    views: int = typer.Option(1, min=1, help="pbr: each holder seen from this many random "
+                              "poses (a retake's views: the same wear and slurry, another "
+                              "viewpoint); --count images in all."),
 ):
     """Render an image set with its truth.json (PROTOCOL.md, exchange formats)."""
     from rich.progress import Progress
@@ -317,9 +320,12 @@ def render_set_cmd(
             task = bar.add_task(f"rendering ({fp.name}, pbr)", total=count)
             path = render_field_set(count, seed, out, fp, cam, variant=variant, spp=spp,
                                     progress=lambda done, n: bar.update(task, completed=done),
-                                    resume=resume, distance_mm=dist)
+                                    resume=resume, distance_mm=dist, views=views)
         typer.echo(f"wrote {count} images and {path}")
         return
+    if views != 1:
+        fail("--views is for --engine pbr (the analytic renderer draws each image's holder "
+             "afresh)")
     if engine != "analytic":
         raise InputError(f"--engine must be 'analytic' or 'pbr', got {engine!r}")
     from .render.analytic import DEFAULT_MIX, render_set

@@ -16,7 +16,10 @@ per image set (e.g. ``sharp``, ``new``, ``worn``). Per set and method the table 
   a pose, accepted or refused: the errors within its 3-sigma figures, the median of
   ``|e_k| / sigma_k`` per DOF (0.674 when the budget is the error's covariance) and the median
   squared Mahalanobis distance (5.35, the median of chi-square with 6 degrees of freedom). A
-  budget much wider than the errors refuses good poses; a narrower one accepts bad ones.
+  budget much wider than the errors refuses good poses; a narrower one accepts bad ones;
+* on a set that shows each holder from several poses (``render-set --views``): how many
+  holders a robot that retakes a refused measurement gets within 1, 2, ... views, and the
+  errors of the view it would use.
 
 Convention:
     Errors as in PROTOCOL.md (estimate - truth, degrees and mm); nothing is dropped: an image
@@ -65,6 +68,7 @@ def field_stats(folder, name: str | None = None) -> list[dict]:
     folder = Path(folder)
     verdicts = _read_verdicts(folder)
     budgets = _read_budgets(folder)
+    views = _read_views(folder)
     rows = read_trials_csv(folder / "trials.csv")
     out = []
     for m in dict.fromkeys(r["method"] for r in rows):
@@ -80,6 +84,7 @@ def field_stats(folder, name: str | None = None) -> list[dict]:
                           for r, ok in zip(sel, acc) if not ok)
         ref_pose = ~acc & has
         honesty = _budget_honesty(budgets, sel, m, E, rot, trans, acc)
+        retake = _retakes(views, sel, acc & has, rot, trans)
         out.append({
             "set": name or folder.name, "method": m, "n": len(sel),
             "accepted": int(a.sum()), "refused": int((~acc).sum()),
@@ -91,9 +96,54 @@ def field_stats(folder, name: str | None = None) -> list[dict]:
             "accepted_bad": int(bad.sum()),
             "refused_trans_median_mm": _pct(trans[ref_pose], 50),
             "refusals": dict(reasons.most_common()),
-            **honesty,
+            **honesty, **retake,
         })
     return out
+
+
+def _read_views(folder: Path) -> dict:
+    """{trial: (holder, view)} from ``corners.csv`` for a set rendered with ``--views``."""
+    path = folder / "corners.csv"
+    if not path.is_file():
+        return {}
+    with open(path, newline="") as fh:
+        return {int(r["trial"]): (int(r["holder_index"]), int(r["view"]))
+                for r in csv.DictReader(fh) if r.get("holder_index") not in (None, "")}
+
+
+def _retakes(views: dict, sel: list, acc, rot, trans) -> dict:
+    """What a robot that retakes a refused measurement gets, on a set that shows each holder
+    from several poses (views in their order: the first look, then the retakes): per ``k``,
+    the holders with an accepted view among their first ``k``; and the errors of the view it
+    would use (the first accepted), with how many of those are beyond 1 mm / 0.5 deg."""
+    if not views:
+        return {}
+    trials = [int(r["trial"]) for r in sel]
+    by_holder: dict = {}
+    for j, t in enumerate(trials):
+        if t in views:
+            h, v = views[t]
+            by_holder.setdefault(h, []).append((v, j))
+    if not by_holder:
+        return {}
+    k_max = max(len(v) for v in by_holder.values())
+    within = [0] * k_max
+    used = []
+    for vs in by_holder.values():
+        vs.sort()
+        first = next((k for k, (_, j) in enumerate(vs) if acc[j]), None)
+        if first is not None:
+            for k in range(first, k_max):
+                within[k] += 1
+            used.append(vs[first][1])
+    used = np.array(used, int)
+    return {"holders": len(by_holder), "accepted_within_views": within,
+            "retake_rot_max_deg": float(rot[used].max()) if len(used) else math.nan,
+            "retake_trans_max_mm": float(trans[used].max()) if len(used) else math.nan,
+            "retake_trans_p95_mm": _pct(trans[used], 95),
+            "retake_rot_p95_deg": _pct(rot[used], 95),
+            "retake_bad": int(((trans[used] > BAD_TRANS_MM) | (rot[used] > BAD_ROT_DEG)).sum())
+            if len(used) else 0}
 
 
 def _read_budgets(folder: Path) -> dict:
@@ -186,6 +236,21 @@ def field_markdown(stats: list[dict]) -> str:
                 + " / ".join(_c(v, 2) for v in s["z_median"]) + " | "
                 + " / ".join(_c(v, 1) for v in s["z_max"]) + " | "
                 f"{_c(s['mahalanobis2_median'], 1)} |")
+    ret = [s for s in stats if s.get("holders")]
+    if ret:
+        lines += ["", "Retakes (sets that show each holder from several poses): the holders "
+                  "with an accepted measurement among their first k views, and the errors of "
+                  "the view a robot that retakes until accepted would use.", "",
+                  "| set | method | holders | accepted within 1 / 2 / ... views | p95 rot / "
+                  "trans of the used view | max rot / trans | used > 1 mm or 0.5 deg |",
+                  "|" + "---|" * 7]
+        for s in ret:
+            lines.append(
+                f"| {s['set']} | {s['method']} | {s['holders']} | "
+                + " / ".join(str(v) for v in s["accepted_within_views"]) + " | "
+                f"{_c(s['retake_rot_p95_deg'])} / {_c(s['retake_trans_p95_mm'])} | "
+                f"{_c(s['retake_rot_max_deg'])} / {_c(s['retake_trans_max_mm'])} | "
+                f"{s['retake_bad']} |")
     return "\n".join(lines) + "\n"
 
 

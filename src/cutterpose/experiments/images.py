@@ -11,7 +11,8 @@ verdict refuses, or an image the image processing rejects, is a failed row with 
 Outputs in ``out``: ``trials.csv`` (protocol columns, ``sigma_px`` empty), ``summary.md`` /
 ``summary.json`` (the shared report writers), ``corners.csv`` (per image: difficulty, RMS of the
 detected corners against the true ones with and without the gradient refinement, threshold
-used, segmentation: the paper's ``contour`` or the model-guided fallback ``model``) and
+used, segmentation: the paper's ``contour`` or the model-guided fallback ``model``; the holder
+and view of a set rendered with ``--views``) and
 ``failures.csv`` (trial, method, reason), ``verdicts.csv`` (trial, method, accepted 0/1,
 reason: the measurement's own verdict, whatever the truth says) and ``budgets.csv`` (trial,
 method, the error budget's 3-sigma position at the grasp point and angle, its std per DOF and
@@ -67,7 +68,8 @@ def _one_image(args):
            "budgets": []}
     info = {"trial": i, "file": entry["file"], "difficulty": entry.get("difficulty", ""),
             "threshold": "", "segmentation": "", "rms_refined_px": math.nan,
-            "rms_threshold_px": math.nan, "reason": ""}
+            "rms_threshold_px": math.nan, "reason": "",
+            "holder_index": entry.get("holder_index", ""), "view": entry.get("view", "")}
     nan_R, nan_t = np.full((3, 3), np.nan), np.full(3, np.nan)
 
     def all_failed(reason):
@@ -194,7 +196,7 @@ def run_images(folder, methods: list[str], out, workers: int = 1, params=None,
         for res in results:
             w.writerows(res["budgets"])
     cols = ["trial", "file", "difficulty", "threshold", "segmentation", "rms_refined_px",
-            "rms_threshold_px", "reason"]
+            "rms_threshold_px", "reason", "holder_index", "view"]
     with open(out / "corners.csv", "w", newline="") as fh:
         w = csv.DictWriter(fh, cols)
         w.writeheader()

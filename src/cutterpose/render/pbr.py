@@ -1147,15 +1147,24 @@ def render_field_set(count: int, seed: int, out_dir, preset: FieldPreset | str =
                      variant: str | None = None, spp: int | None = None,
                      max_angle_deg: float = 10.0, max_shift_mm: float = 20.0,
                      progress=None, resume: bool = False,
-                     distance_mm: tuple[float, float] | None = None) -> Path:
+                     distance_mm: tuple[float, float] | None = None, views: int = 1) -> Path:
     """Render ``count`` pbr images at random poses (PROTOCOL.md, real-image experiment) into
     ``out_dir`` with its ``truth.json`` (rewritten after every image, so a set that is still
     rendering can already be read). Image ``i`` uses the seed ``SeedSequence([seed, i])``.
     ``resume``: keep the images of an interrupted run of the same set (same seed and preset,
     file present) and render the rest. ``distance_mm``: (near, far) depths drawn uniformly
-    instead of 600 +- ``max_shift_mm``, the light auto-exposed as in ``render-sequence``."""
+    instead of 600 +- ``max_shift_mm``, the light auto-exposed as in ``render-sequence``.
+
+    ``views``: each holder seen from this many random poses (what a retake sees: the same
+    wear, chips, slurry and textures, another viewpoint, and the ring light with it). Image
+    ``i`` is view ``v = i % views`` of holder ``h = i // views``; view 0 is image ``h`` of the
+    plain set with the same seed (scene, pose and noise), view ``v >= 1`` the same scene at a
+    pose and with noise from ``SeedSequence([seed, h, v, 1])``; ``truth.json`` names both
+    (``holder_index``, ``view``)."""
     if count < 1:
         raise InputError(f"count must be >= 1, got {count}")
+    if views < 1:
+        raise InputError(f"views must be >= 1, got {views}")
     camera = default_camera("table1") if camera is None else camera
     holder = default_holder() if holder is None else holder
     preset = field_preset(preset) if isinstance(preset, str) else preset
@@ -1164,26 +1173,36 @@ def render_field_set(count: int, seed: int, out_dir, preset: FieldPreset | str =
     doc = {"camera": camera.to_dict(), "holder": holder.to_dict(), "seed": seed,
            "engine": "pbr", "presets": {preset.name: asdict(preset)}, "images": []}
     doc |= distance_doc(distance_mm)
+    if views > 1:
+        doc["views"] = int(views)
     path = out / "truth.json"
     done = {}
     if resume and path.is_file():
         old = json.loads(path.read_text())
-        if old.get("seed") == seed and set(old.get("presets", {})) == {preset.name}:
+        if (old.get("seed") == seed and set(old.get("presets", {})) == {preset.name}
+                and old.get("views", 1) == views):
             done = {e["file"]: e for e in old["images"] if (out / e["file"]).is_file()}
     for i in range(count):
         if f"img_{i:04d}.png" in done:
             doc["images"].append(done[f"img_{i:04d}.png"])
             continue
-        img_seed = int(np.random.SeedSequence([seed, i]).generate_state(1)[0])
-        pose = random_pose(np.random.default_rng(img_seed), max_angle_deg, max_shift_mm,
-                           distance_mm)
+        h, v = divmod(i, views)
+        img_seed = int(np.random.SeedSequence([seed, h]).generate_state(1)[0])
+        noise_seed = (None if v == 0
+                      else int(np.random.SeedSequence([seed, h, v, 1]).generate_state(1)[0]))
+        pose = random_pose(np.random.default_rng(img_seed if noise_seed is None else noise_seed),
+                           max_angle_deg, max_shift_mm, distance_mm)
         lit = (preset if distance_mm is None
                else preset.with_(light_dn=auto_exposed(preset.light_dn, pose)))
-        r = render_field(pose, camera, holder, lit, seed=img_seed, variant=variant, spp=spp)
+        r = render_field(pose, camera, holder, lit, seed=img_seed, variant=variant, spp=spp,
+                         noise_seed=noise_seed)
         fname = f"img_{i:04d}.png"
         if not cv2.imwrite(str(out / fname), r.image):
             raise InputError(f"{out}: could not write {fname}")
-        doc["images"].append(r.truth_dict(fname))
+        entry = r.truth_dict(fname)
+        if views > 1:
+            entry |= {"holder_index": h, "view": v}
+        doc["images"].append(entry)
         tmp = path.with_suffix(".json.tmp")
         tmp.write_text(json.dumps(doc, indent=1))
         tmp.replace(path)
