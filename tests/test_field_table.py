@@ -76,8 +76,8 @@ def test_budget_honesty_from_budgets_csv(tmp_path):
 
 def test_budget_cells_carry_std_and_mahalanobis():
     from cutterpose.budget import budget_from_dof_cov
-    from cutterpose.experiments.images import BUDGET_STD_COLUMNS, _budget_cells
-    from cutterpose.experiments.report import ERR_COLUMNS
+    from cutterpose.experiments.images import _budget_cells
+    from cutterpose.experiments.report import BUDGET_STD_COLUMNS, ERR_COLUMNS
 
     C = np.diag([0.01, 0.04, 0.0001, 0.01, 0.01, 0.25])
     C[0, 5] = C[5, 0] = 0.03

@@ -38,8 +38,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
-from .images import BUDGET_STD_COLUMNS
-from .report import DOF_NAMES, DOF_UNITS, ERR_COLUMNS, read_trials_csv
+from .report import BUDGET_STD_COLUMNS, DOF_NAMES, DOF_UNITS, ERR_COLUMNS, read_trials_csv
 
 __all__ = ["field_stats", "field_markdown", "BAD_TRANS_MM", "BAD_ROT_DEG"]
 
@@ -226,8 +225,9 @@ def field_markdown(stats: list[dict]) -> str:
                   "median |error| / std per DOF (0.67 when the budget is the error's "
                   "covariance, smaller when it is wider) and its maximum; the median squared "
                   "Mahalanobis distance (5.35 for 6 DOF).", "",
-                  "| set | method | with budget | within 3 sigma (all; accepted) | median |e|/std "
-                  + " / ".join(DOF_NAMES) + " | max |e|/std | median Mahalanobis^2 |",
+                  "| set | method | with budget | within 3 sigma (all; accepted) | median "
+                  "\\|e\\|/std " + " / ".join(DOF_NAMES) + " | max \\|e\\|/std | median "
+                  "Mahalanobis^2 |",
                   "|" + "---|" * 7]
         for s in hon:
             lines.append(

@@ -36,13 +36,16 @@ from ..image import FeatureParams, detect_features, load_image
 from ..image_set import load_image_set
 from ..parallel import run_jobs
 from ..pipeline import QualityLimits, measure_features
-from .report import ERR_COLUMNS, summarize, trial_rows, write_summary, write_trials_csv
+from .report import (
+    BUDGET_STD_COLUMNS,
+    ERR_COLUMNS,
+    summarize,
+    trial_rows,
+    write_summary,
+    write_trials_csv,
+)
 
-__all__ = ["load_image_set", "run_images", "corner_rms", "BUDGET_STD_COLUMNS"]
-
-#: budgets.csv: the budget's std per DOF, in the order of the error columns
-BUDGET_STD_COLUMNS = ("std_alpha_deg", "std_beta_deg", "std_gamma_deg", "std_X_mm", "std_Y_mm",
-                      "std_Z_mm")
+__all__ = ["load_image_set", "run_images", "corner_rms"]
 
 PNP_METHODS = ("dlt", "epnp", "rpnp", "aspnp", "opnp")
 

@@ -26,6 +26,9 @@ TRIAL_COLUMNS = ["trial", "sigma_px", "method", "alpha_err_deg", "beta_err_deg",
 DOF_NAMES = ["alpha", "beta", "gamma", "X", "Y", "Z"]
 DOF_UNITS = ["deg", "deg", "deg", "mm", "mm", "mm"]
 ERR_COLUMNS = TRIAL_COLUMNS[3:9]
+#: ``experiment images``' budgets.csv: the error budget's std per DOF, in ERR_COLUMNS' order
+BUDGET_STD_COLUMNS = ("std_alpha_deg", "std_beta_deg", "std_gamma_deg", "std_X_mm", "std_Y_mm",
+                      "std_Z_mm")
 
 
 def trial_rows(trial, sigma_px, method: str, R_true, t_true_mm, R_est, t_est_mm,
