@@ -11,6 +11,12 @@ pose (6 DOF), the dm pose, the verdict and the per-stage times. ``--check`` comp
 recording: corners within ``--tol-px`` (0.02 px), poses within ``--tol-mm`` (0.005 mm) and
 ``--tol-deg`` (0.001 deg), the same seen corners and the same verdict; it exits 1 otherwise.
 
+The recording is of the code it was made with: re-record it right before the speed work it
+is to guard (the one in the repository, of the seventh session, still matches on the 18
+analytic images; on the pbr sets the later sessions' changes to the corner methods' verdict
+and the field chain moved refusal texts and some refused worn poses: 205 differences in the
+tenth session, none an accepted pose).
+
 Usage::
 
     python benchmarks/speed_regression.py --record benchmarks/speed_reference.json
@@ -42,7 +48,7 @@ from cutterpose.geometry.camera import camera_from_dict, default_camera  # noqa:
 from cutterpose.geometry.holder import default_holder  # noqa: E402
 from cutterpose.geometry.pose import Pose  # noqa: E402
 from cutterpose.image import load_image  # noqa: E402
-from cutterpose.pipeline import measure  # noqa: E402
+from cutterpose.pipeline import QualityLimits, measure  # noqa: E402
 
 PRESETS = ("easy", "worn", "occluded", "hard", "cutter", "field")
 #: (alpha, beta, gamma deg, X, Y, Z mm), seed: within the real rig's working range
@@ -50,6 +56,9 @@ POSES = (((3.0, -4.0, 5.0, 10.0, -8.0, 610.0), 1),
          ((-6.0, 7.0, -2.0, -12.0, 9.0, 590.0), 2),
          ((8.0, 2.0, -7.0, 15.0, 14.0, 618.0), 3))
 PBR_GLOB = "/work/data/pbr_*"
+#: the verdict as it was when the reference was recorded: the corner methods' budget had no
+#: part for an edge break (ninth session), so the images' edges are declared sharp
+LIMITS = QualityLimits(edge_break_mm=0.0)
 
 
 def image_list(cache: Path):
@@ -98,7 +107,7 @@ def run(cache: Path, only: str | None = None, names=None) -> dict:
         img = load()
         row = {}
         for method in ("dm+", "dm"):
-            m = measure(img, cam, holder, method)
+            m = measure(img, cam, holder, method, limits=LIMITS)
             f = m.features
             row[method] = {
                 "ok": bool(m.ok), "reason": m.quality.reason,
