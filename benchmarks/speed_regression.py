@@ -15,7 +15,8 @@ The recording is of the code it was made with: re-record it right before the spe
 is to guard (the one in the repository, of the seventh session, still matches on the 18
 analytic images; on the pbr sets the later sessions' changes to the corner methods' verdict
 and the field chain moved refusal texts and some refused worn poses: 205 differences in the
-tenth session, none an accepted pose).
+tenth session; none accepts a pose the recording refused, two ``dm`` poses on new holders
+are refused now at 0.304-0.305 deg, the ninth session's ``method`` part).
 
 Usage::
 
