@@ -95,8 +95,9 @@ def main() -> int:
         # sign: an error of +o mm is the design point o mm outside the true design edge
         e = -_residuals(true, X, p, n, K) / sd
         J = _jacobian(band.dof, X, n, K) / sd[:, None]
-        lean = view_lean(em.edge_views(rotation_from_euler_deg(*band.dof[:3]), band.dof[3:], K,
-                                       holder), bp.edge, bp.frac)[v]
+        lean_all = view_lean(em.edge_views(rotation_from_euler_deg(*band.dof[:3]), band.dof[3:],
+                                           K, holder), bp.edge, bp.frac)
+        lean = lean_all[v]
         u = bp.px_per_mm[v] / sd                    # a 1 mm outward shift, whitened
         # offset (mm outwards) and depth (mm below the face: it images d tan(theta) outwards)
         patterns = np.column_stack([u, lean * u])
@@ -104,8 +105,6 @@ def main() -> int:
         coefs.append(np.linalg.lstsq(patterns, e, rcond=None)[0])
         rows.append(r)
         valid = np.isfinite(band.residuals_px)
-        lean_all = view_lean(em.edge_views(rotation_from_euler_deg(*band.dof[:3]), band.dof[3:],
-                                           K, holder), bp.edge, bp.frac)
         unit = [(design_pose(band.fit, band.fit.best.moved(0.1 * f, bp.px_per_mm), K, band.dof,
                              valid) - band.dof) / 0.1 for f in (1.0, lean_all)]
         err = pose_errors(np.array(entry["R_cam_holder"]), np.array(entry["t_cam_holder_mm"]),

@@ -39,6 +39,7 @@ from ..pipeline import QualityLimits, measure_features
 from .report import (
     BUDGET_STD_COLUMNS,
     ERR_COLUMNS,
+    _fmt,
     summarize,
     trial_rows,
     write_summary,
@@ -135,11 +136,7 @@ def _budget_cells(budget, row: dict) -> list[str]:
         except np.linalg.LinAlgError:
             pass
     return ([f"{budget.position_3sigma_mm:.4f}", f"{budget.angle_3sigma_deg:.4f}"]
-            + [f"{v:.5g}" for v in budget.std_dof] + [_fmt_num(d2)])
-
-
-def _fmt_num(v: float) -> str:
-    return f"{v:.5g}" if math.isfinite(v) else ""
+            + [_fmt(float(v)) for v in budget.std_dof] + [_fmt(d2)])
 
 
 def run_images(folder, methods: list[str], out, workers: int = 1, params=None,
