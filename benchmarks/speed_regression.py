@@ -6,8 +6,10 @@ Images: the analytic presets easy, worn, occluded, hard, cutter and field at thr
 of the Mitsuba sets ``/work/data/pbr_*`` that exist (read only). Renders are cached as PNG in
 ``--cache`` (lossless: the same pixels as the render).
 
-Per image it records the seen corners (observed px, NaN where not seen), the seen mask, the dm+
-pose (6 DOF), the dm pose, the verdict and the per-stage times. ``--check`` compares with the
+Per image it records the seen corners (observed px, NaN where not seen), the seen mask, and per
+method (``dm+``, ``dm`` and, since the eleventh session, the default ``dm+b`` with the edge
+break not declared, as ``measure`` runs it) the pose (6 DOF), the verdict and the per-stage
+times; ``dm+b`` also its budget's std per DOF. ``--check`` compares with the
 recording: corners within ``--tol-px`` (0.02 px), poses within ``--tol-mm`` (0.005 mm) and
 ``--tol-deg`` (0.001 deg), the same seen corners and the same verdict; it exits 1 otherwise.
 
@@ -60,6 +62,8 @@ PBR_GLOB = "/work/data/pbr_*"
 #: the verdict as it was when the reference was recorded: the corner methods' budget had no
 #: part for an edge break (ninth session), so the images' edges are declared sharp
 LIMITS = QualityLimits(edge_break_mm=0.0)
+#: method -> limits; ``dm+b`` measures the break, so it runs with the defaults
+METHODS = {"dm+": LIMITS, "dm": LIMITS, "dm+b": QualityLimits()}
 
 
 def image_list(cache: Path):
@@ -99,7 +103,8 @@ def _nan_list(a):
     return None if a is None else np.where(np.isfinite(a), a, np.nan).tolist()
 
 
-def run(cache: Path, only: str | None = None, names=None) -> dict:
+def run(cache: Path, only: str | None = None, names=None,
+        methods: tuple[str, ...] = tuple(METHODS)) -> dict:
     holder = default_holder()
     rec = {}
     for name, cam, load in image_list(cache):
@@ -107,13 +112,15 @@ def run(cache: Path, only: str | None = None, names=None) -> dict:
             continue
         img = load()
         row = {}
-        for method in ("dm+", "dm"):
-            m = measure(img, cam, holder, method, limits=LIMITS)
+        for method in methods:
+            m = measure(img, cam, holder, method, limits=METHODS[method])
             f = m.features
             row[method] = {
                 "ok": bool(m.ok), "reason": m.quality.reason,
                 "dof": None if m.pose is None else m.pose.dof.tolist(),
                 "timings_ms": {k: round(float(v), 2) for k, v in m.timings_ms.items()}}
+            if m.quality.budget is not None:
+                row[method]["std"] = _nan_list(np.asarray(m.quality.budget.std_dof, float))
             if method == "dm+":
                 row["visible"] = None if f is None else np.asarray(f.visible).tolist()
                 row["corners_px"] = None if f is None else _nan_list(f.corners_px)
@@ -133,8 +140,8 @@ def _ang(a, b):
 def compare(ref: dict, new: dict, tol_px: float, tol_mm: float, tol_deg: float) -> list[str]:
     """Differences beyond the tolerances, one line each (empty: all within)."""
     bad = []
-    print(f"{'image':28s} {'corner px':>10s} {'dm+ deg':>9s} {'dm+ mm':>9s} {'dm deg':>9s} "
-          f"{'dm mm':>9s}")
+    print(f"{'image':28s} {'corner px':>10s}"
+          + "".join(f" {k + ' deg':>9s} {k + ' mm':>9s}" for k in METHODS))
     for name, r in ref.items():
         n = new.get(name)
         if n is None:
@@ -151,7 +158,7 @@ def compare(ref: dict, new: dict, tol_px: float, tol_mm: float, tol_deg: float) 
                 bad.append(f"{name}: a corner moved {dc:.4f} px (> {tol_px})")
         else:
             line += f" {'-':>10s}"
-        for method in ("dm+", "dm"):
+        for method in [k for k in METHODS if k in r and k in n]:
             rr, nn = r[method], n[method]
             if rr["ok"] != nn["ok"] or rr["reason"] != nn["reason"]:
                 bad.append(f"{name} {method}: verdict changed {rr['ok']} {rr['reason']!r} -> "
@@ -185,7 +192,9 @@ def main() -> None:
     ap.add_argument("--tol-deg", type=float, default=0.001)
     a = ap.parse_args()
     ref = json.loads(a.check.read_text()) if a.check else None
-    rec = run(a.cache, a.only, None if ref is None else set(ref))
+    methods = tuple(METHODS) if ref is None else tuple(
+        k for k in METHODS if any(k in row for row in ref.values()))
+    rec = run(a.cache, a.only, None if ref is None else set(ref), methods)
     if a.record:
         a.record.write_text(json.dumps(rec, indent=1))
         print(f"recorded {len(rec)} images -> {a.record}")

@@ -12,6 +12,13 @@ the camera come from their ``truth.json``). For every frame, in this order:
    the same way: its std per DOF is the frame's reference band, its CPU time the denominator of
    the speed ratio.
 
+``--fps F`` plays the frames as a camera delivers them (frame ``i`` arrives at ``i / F`` s;
+loaded into memory first; no full measurement in the loop): each frame's latency is from its
+arrival to its answer (it waits while the tracker is busy with the one before), and the frames
+answered later than ``1 / F`` after arrival are counted. ``--track anchor_lag=3`` defers the
+``dm+b`` re-anchors (their band fits in a background thread, ``--no-anchor-thread``: on the
+frame itself, the same poses); the tracker's CPU time is then its own thread's.
+
 A tracked frame is *within the band* when every DOF's error (against the truth) is at most 3
 std of the full measurement; where the full measurement refused the frame, the std of the
 nearest frame whose full measurement was accepted is used (and said). Fall-backs are counted
@@ -50,30 +57,40 @@ cv2.setNumThreads(1)
 
 
 def run(seq: Path, with_full: bool = True, track: TrackParams | None = None,
-        method: str = "dm+b", edge_look=None, edge_break_mm: float | None = None) -> list[dict]:
+        method: str = "dm+b", edge_look=None, edge_break_mm: float | None = None,
+        fps: float | None = None, anchor_thread: bool = True) -> list[dict]:
     truth = json.loads((seq / "truth.json").read_text())
     camera = camera_from_dict(truth["camera"])
     holder = holder_from_dict(truth["holder"])
     params = approach_params(camera)
     limits = replace(approach_limits(), edge_break_mm=edge_break_mm)
     tracker = Tracker(camera, holder, method, limits=limits, filter=True, track=track,
-                      edge_look=edge_look)
+                      edge_look=edge_look, anchor_thread=anchor_thread)
     rows = []
-    for e in truth["images"]:
-        img = load_frame(seq / e["file"])
+    frames = [load_frame(seq / e["file"]) for e in truth["images"]] if fps else None
+    t_start = time.perf_counter()
+    for i, e in enumerate(truth["images"]):
+        img = frames[i] if fps else load_frame(seq / e["file"])
         R, t = np.array(e["R_cam_holder"]), np.array(e["t_cam_holder_mm"])
-        c0, w0 = time.process_time(), time.perf_counter()
+        if fps:   # the camera's frame i arrives at i / fps; a busy tracker makes it wait
+            arrival = t_start + i / fps
+            time.sleep(max(arrival - time.perf_counter(), 0.0))
+        c0, w0 = time.thread_time(), time.perf_counter()
         r = tracker.update(img)
-        cpu, wall = (time.process_time() - c0) * 1e3, (time.perf_counter() - w0) * 1e3
+        cpu, wall = (time.thread_time() - c0) * 1e3, (time.perf_counter() - w0) * 1e3
         err = (pose_errors(R, t, r.pose.R, r.pose.t_mm).dof[0] if r.pose is not None
                else np.full(6, np.nan))
         row = {"frame": e["frame"], "z_mm": t[2], "mode": r.mode, "cpu_ms": cpu,
                "wall_ms": wall, "passes": r.passes, "lines_seen": r.lines_seen,
                "lines_dropped": r.lines_dropped, "rms_px": r.rms_px,
-               "reason": r.fallback_reason, "anchor": r.anchor}
+               "reason": r.fallback_reason, "anchor": r.anchor,
+               "anchor_wait_ms": r.timings_ms.get("anchor_wait", 0.0)}
+        if fps:
+            row["latency_ms"] = (time.perf_counter() - arrival) * 1e3
+            row["fps"] = fps
         row |= {f"err_{n}": v for n, v in zip(DOF_NAMES, err)}
         row |= {f"std_{n}": v for n, v in zip(DOF_NAMES, r.std_dof)}
-        if r.anchor and r.anchor != "re-anchored":
+        if r.anchor and "refused" in r.anchor:
             print(f"  {seq.name} frame {e['frame']}: {r.anchor}", file=sys.stderr)
         if with_full:
             c0 = time.process_time()
@@ -88,6 +105,7 @@ def run(seq: Path, with_full: bool = True, track: TrackParams | None = None,
         rows.append(row)
         print(f"  {seq.name} frame {e['frame']}: {r.mode} {cpu:.1f} ms", file=sys.stderr,
               flush=True)
+    tracker.close()
     if with_full:
         band(rows)
     return rows
@@ -128,15 +146,29 @@ def summary(name: str, rows: list[dict], truth: dict) -> None:
               f"edges seen median {np.median([r['lines_seen'] for r in tr]):.0f} (min "
               f"{min(r['lines_seen'] for r in tr)}), edges dropped as outliers in "
               f"{sum(r['lines_dropped'] > 0 for r in tr)} frames")
-        an = [r for r in tr if r["anchor"] == "re-anchored"]
-        refused = [r for r in tr if r["anchor"].startswith("re-anchor refused")]
+        an = [r for r in tr if r["anchor"].startswith("re-anchored")]
+        refused = [r for r in tr if "refused" in r["anchor"]]
+        started = [r for r in tr if "re-anchor started" in r["anchor"]]
         if an or refused:
-            plain = np.array([r["cpu_ms"] for r in tr if not r["anchor"]])
+            plain = np.array([r["cpu_ms"] for r in tr
+                              if not r["anchor"] or r["anchor_wait_ms"] > 0])
             print(f"  re-anchored on {len(an)} tracked frames "
                   f"({[r['frame'] for r in an]}), CPU median "
                   f"{np.median([r['cpu_ms'] for r in an]) if an else np.nan:.0f} ms; refused on "
                   f"{len(refused)} {[r['frame'] for r in refused]}; the other tracked frames: "
                   f"CPU median {np.median(plain):.1f} ms (p90 {np.percentile(plain, 90):.1f})")
+        if started:
+            wait = np.array([r["anchor_wait_ms"] for r in an])
+            print(f"  deferred: started on {[r['frame'] for r in started]}; waited for at "
+                  f"take-up median {np.median(wait) if len(wait) else np.nan:.1f} ms (max "
+                  f"{wait.max() if len(wait) else np.nan:.1f})")
+    if "latency_ms" in rows[0]:
+        lat = np.array([r["latency_ms"] for r in rows[1:]])
+        fps = rows[0]["fps"]
+        print(f"  played at {fps:g} fps: latency after the first frame median "
+              f"{np.median(lat):.1f} ms (p90 {np.percentile(lat, 90):.1f}, max {lat.max():.1f}); "
+              f"answered later than one frame ({1e3 / fps:.0f} ms): {int(np.sum(lat > 1e3 / fps))}"
+              f" of {len(lat)}")
     reasons: dict[str, list] = {}
     for r in rows[1:]:
         if r["mode"] != "track":
@@ -211,6 +243,10 @@ def main() -> int:
                     "and field presets; default: not known)")
     ap.add_argument("--edge-look", default=None, help="an edge look file from "
                     "`cutterpose calibrate-edge-look` (dm+b: tracker and full measurement)")
+    ap.add_argument("--fps", type=float, default=None, help="play the frames at this rate "
+                    "(a camera's; implies --no-full) and report each frame's latency")
+    ap.add_argument("--no-anchor-thread", action="store_true", help="with anchor_lag > 0: "
+                    "the band fits on the frame they are started on (same poses, no thread)")
     ap.add_argument("--track", action="append", default=[], metavar="NAME=VALUE",
                     help="a TrackParams field (repeatable), e.g. max_rms_px=0.5")
     a = ap.parse_args()
@@ -227,7 +263,8 @@ def main() -> int:
             from cutterpose.calibration.edge_look import load_edge_look
 
             look = load_edge_look(a.edge_look)
-        rows = run(seq, not a.no_full, tp, a.method, look, a.edge_break_mm)
+        rows = run(seq, not (a.no_full or a.fps), tp, a.method, look, a.edge_break_mm,
+                   a.fps, not a.no_anchor_thread)
         out = a.out / seq.name
         out.mkdir(parents=True, exist_ok=True)
         keys = list(dict.fromkeys(k for r in rows for k in r))

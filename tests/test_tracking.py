@@ -323,6 +323,65 @@ def test_reanchor_that_disagrees_falls_back(changing_break, monkeypatch):
     assert abs(r.pose.dof[5] - poses[1].dof[5]) < 1.0
 
 
+def test_deferred_reanchor_is_applied_lag_frames_later_thread_or_not(changing_break):
+    """``anchor_lag = 2``: the re-anchor due on frame 1 is started there (the frame keeps the
+    full measurement's offsets, as a carried tracker), runs beside frames 2, and is taken up
+    at frame 3, which then follows the changed break again. The same poses with the band fit
+    in a background thread and without it (the frame it applies on is fixed, not the
+    machine's speed)."""
+    from cutterpose.tracking import TrackParams
+
+    cam, hol, poses, frames, params = changing_break
+    out = {}
+    for thread in (True, False):
+        with Tracker(cam, hol, method="dm+b", params=params, anchor_thread=thread,
+                     track=TrackParams(anchor_gain=1.0, anchor_lag=2)) as tracker:
+            out[thread] = [tracker.update(f) for f in frames]
+    res = out[True]
+    assert [r.mode for r in res] == ["full", "track", "track", "track"], \
+        [(r.mode, r.fallback_reason) for r in res]
+    assert res[1].anchor == "re-anchor started (applied at frame 3)"
+    assert res[2].anchor == ""
+    # frame 3 takes up frame 1's fit, and (warm-up: one attempt so far) starts the next
+    assert res[3].anchor.startswith("re-anchored (frame 1); re-anchor started"), res[3].anchor
+    assert "anchor_wait" in res[3].timings_ms
+    for a, b in zip(out[True], out[False]):
+        assert a.anchor == b.anchor
+        np.testing.assert_array_equal(a.pose.dof, b.pose.dof)
+        np.testing.assert_array_equal(a.std_dof, b.std_dof)
+    z = [r.pose.dof[5] - p.dof[5] for r, p in zip(res, poses)]
+    std_z = [r.std_dof[5] for r in res]
+    # frames 1-2 carry the first offsets (the break changed: ~1 mm off), frame 3 does not
+    assert all(abs(e) > max(0.7, 2.5 * s) for e, s in zip(z[1:3], std_z[1:3])), z
+    assert abs(z[3]) < 1.5 * std_z[3], (z, std_z)
+
+
+def test_deferred_reanchor_that_disagrees_falls_back_on_take_up(changing_break, monkeypatch):
+    """A deferred band fit 5 mm from frame 1's tracked pose: frame 3, where it is taken up, is
+    measured in full and names frame 1; a full measurement drops a pending re-anchor."""
+    import cutterpose.tracking as tracking
+    from cutterpose.solvers.edge_band import measure_band
+    from cutterpose.tracking import TrackParams
+
+    cam, hol, poses, frames, params = changing_break
+
+    def shifted(*args, **kw):
+        est = measure_band(*args, **kw)
+        est.t_cam_holder_mm = est.t_cam_holder_mm + np.array([0.0, 0.0, 5.0])
+        return est
+
+    monkeypatch.setattr(tracking, "measure_band", shifted)
+    with Tracker(cam, hol, method="dm+b", params=params,
+                 track=TrackParams(anchor_lag=2)) as tracker:
+        res = [tracker.update(f) for f in frames]
+        assert [r.mode for r in res] == ["full", "track", "track", "full"], \
+            [(r.mode, r.fallback_reason) for r in res]
+        assert res[3].fallback_reason.startswith("re-anchor (frame 1):"), \
+            res[3].fallback_reason
+        assert "Z_mm" in res[3].fallback_reason and tracker._pending is None
+        assert abs(res[3].pose.dof[5] - poses[3].dof[5]) < 1.0
+
+
 def test_approach_outline_match_settles_the_depth():
     """The approach's outline templates at 600-900 mm are 12 % apart at the coarse scale; a
     holder at 624 mm matched the 675 mm template and the outline search then saw 6 of 20

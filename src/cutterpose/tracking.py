@@ -71,6 +71,19 @@ length on the holder; then the fitted pose is the design edge's directly.
   tried again after the same change of view;
 * **std**: a tracked pose inherits the error of the pose its offsets were measured at, so its
   std is the fit's and the last anchor's ``dm+b`` std in quadrature.
+* **deferred re-anchors** (``TrackParams.anchor_lag = L > 0``): the band fit takes ~15 tracked
+  frames' time, so with ``L = 0`` the frame it is due on waits ~200 ms (two frames of a 10 fps
+  camera). With ``L > 0`` that frame is returned at once with the offsets carried, the band
+  fit of its image and tracked pose runs in a background thread (``Tracker(...,
+  anchor_thread=True)``; NumPy and OpenCV release the GIL in their large operations), and
+  its result is taken up at the start of frame ``j + L`` (waiting for it if it is not done):
+  the gate against frame ``j``'s tracked pose, the offsets measured from frame ``j``'s tracked
+  edges at the band's pose, and from frame ``j + L`` on the edges are fitted with them. The
+  frame a result is applied on is fixed, so the poses do not depend on the machine's speed:
+  with the thread or without it (``anchor_thread=False``: the fit is computed on frame ``j``
+  itself) they are the same. A gate failure makes frame ``j + L`` a full measurement with the
+  reason; a full measurement in between drops the pending result. ``TrackResult.anchor``
+  says "re-anchor started" on frame ``j`` and "re-anchored (frame j)" on frame ``j + L``.
 
 ``method="dm+"`` tracks the design model itself (no offsets, no re-anchoring): right for a
 sharp edge (declare it, ``QualityLimits.edge_break_mm = 0``; otherwise its verdict carries a
@@ -103,6 +116,7 @@ from __future__ import annotations
 
 import math
 import time
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -247,6 +261,10 @@ class TrackParams:
     #: the band's pose and the tracked pose may differ per DOF by this many combined std;
     #: beyond, one of them is wrong and the frame is measured in full
     anchor_gate_sigma: float = 5.0
+    #: a re-anchor's band fit (~200 ms) runs beside the tracking and its offsets are applied
+    #: this many frames after the frame it was measured on (module doc, "Deferred
+    #: re-anchors"); 0: on that frame itself, which then waits for the fit
+    anchor_lag: int = 0
 
     def for_camera(self, camera: Camera) -> TrackParams:
         k = camera.focal_px / (0.00854103 / 3.45e-6)
@@ -317,7 +335,9 @@ class TrackResult:
     lines_dropped: int = 0  #: tracking: seen edges left out as off the fitted model
     #: ``dm+b`` tracking: "re-anchored" when the edges' offsets from the design edge were
     #: measured again on this frame, "re-anchor refused: ..." when the band fit was refused
-    #: (the previous offsets kept); "" otherwise
+    #: (the previous offsets kept); deferred (``TrackParams.anchor_lag``): "re-anchor
+    #: started" on the frame measured, "re-anchored (frame j)" / "re-anchor (frame j)
+    #: refused ..." on the frame its result is applied on; "" otherwise
     anchor: str = ""
     #: tracking: the (N, 3) edge lines (ideal px, NaN where not seen) and which edges the pose
     #: rests on (after the outliers were left out)
@@ -404,6 +424,9 @@ class Tracker:
     edge_look : the edge look calibrated in the cell
         (:func:`cutterpose.calibration.edge_look.load_edge_look`): ``dm+b``'s full measurements
         and re-anchors fit it instead of the generic looks.
+    anchor_thread : with ``TrackParams.anchor_lag > 0``, run the deferred re-anchors' band
+        fits in a background thread (False: on the frame they are measured on; the same
+        poses either way). :meth:`close` (or ``with Tracker(...)``) ends the thread.
 
     Examples
     --------
@@ -416,8 +439,10 @@ class Tracker:
     def __init__(self, camera: Camera | None = None, holder: Holder | None = None,
                  method: str = "dm+b", params: FeatureParams | None = None,
                  limits: QualityLimits | None = None, track: TrackParams | None = None,
-                 filter: bool = False, edge_look=None):
+                 filter: bool = False, edge_look=None, anchor_thread: bool = True):
         self.camera = camera or default_camera("table1")
+        self.anchor_thread = anchor_thread
+        self._executor: ThreadPoolExecutor | None = None
         self.edge_look = edge_look
         self.holder = holder or default_holder()
         self.method = method
@@ -449,8 +474,23 @@ class Tracker:
         self._prev: Pose | None = None   # the pose before _last, when both were consecutive
         self._rms_ref = 0.0   # corner RMS of the last accepted full measurement (px)
         self._n = 0
+        #: a deferred re-anchor: (frame to apply it on, its future, the measured frame's
+        #: (index, tracked pose, std, lines, edges used))
+        self._pending: tuple | None = None
         if self.filter is not None:
             self.filter.reset()
+
+    def close(self) -> None:
+        """End the background thread of deferred re-anchors (if one was started)."""
+        if self._executor is not None:
+            self._executor.shutdown(wait=True, cancel_futures=True)
+            self._executor = None
+
+    def __enter__(self) -> Tracker:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
 
     # -- one frame ---------------------------------------------------------------------
     def update(self, image) -> TrackResult:
@@ -461,7 +501,11 @@ class Tracker:
         self._n += 1
         timings: dict[str, float] = {}
         reason = "first frame" if k == 0 else "no previous pose"
-        if self._last is not None:
+        # a deferred re-anchor due on this frame is taken up before the frame is tracked
+        why, note = self._take_anchor(k, timings) if self._last is not None else ("", "")
+        if why:
+            reason = why
+        elif self._last is not None:
             try:
                 res = self._track(img, k, timings)
             except CutterposeError as e:
@@ -471,23 +515,28 @@ class Tracker:
                 if isinstance(res, str):
                     reason, res = res, None
             if res is not None:
+                res.anchor = note
                 # the offsets were measured at a pose with its own error, which every tracked
                 # pose inherits (zero without offsets)
                 if self._offset_mm is not None:
                     res.std_dof = np.hypot(res.std_dof, self._anchor_std)
                 if self._anchor_due(res.pose, k):
-                    try:
-                        res = self._reanchor(img, res, timings)
-                    except CutterposeError as e:
-                        res = f"re-anchor: {type(e).__name__}: {e}"
-                    if isinstance(res, str):
-                        reason, res = res, None
+                    if self.tp.anchor_lag > 0:
+                        self._start_anchor(img, res)
+                    else:
+                        try:
+                            res = self._reanchor(img, res, timings)
+                        except CutterposeError as e:
+                            res = f"re-anchor: {type(e).__name__}: {e}"
+                        if isinstance(res, str):
+                            reason, res = res, None
             if res is not None:
                 self._prev, self._last = self._last, res.pose
                 res.timings_ms = timings | {"total": (time.perf_counter() - t0) * 1e3}
                 self._filter(res, "")
                 return res
-        # full measurement
+        # full measurement (a pending re-anchor belongs to the poses before it)
+        self._pending = None
         t1 = time.perf_counter()
         m = measure(img, self.camera, self.holder, self.method, self.params, self.limits,
                     edge_look=self.edge_look, corners=True)
@@ -542,7 +591,7 @@ class Tracker:
     def _anchor_due(self, pose: Pose, k: int) -> bool:
         """A re-anchor on this tracked frame (``dm+b`` only: its band fit needs nothing but
         the image and a close pose)?"""
-        if self.method != "dm+b":
+        if self.method != "dm+b" or self._pending is not None:
             return False
         tp = self.tp
         if self._anchor_t_mm is None or self._attempts < tp.anchor_warmup:
@@ -590,38 +639,57 @@ class Tracker:
         self._anchor_std = np.where(np.isfinite(std_dof), std_dof, 0.0)
         self._anchors += 1
 
+    def _band_fit(self, img: np.ndarray, pose: Pose, edges_used: np.ndarray):
+        """The re-anchor's band fit from a tracked pose and its verdict (``dm+b``'s own):
+        ``(estimate, quality, ms)``. Reads nothing the tracker changes (background thread)."""
+        t = time.perf_counter()
+        start = PoseEstimate("track", pose.R, pose.t_mm.copy())
+        est = measure_band(img, self.camera, self.holder, start, edges_used,
+                           EDGE_SHAPE_FITS[self.limits.edge_shape], self.tp.anchor_passes,
+                           looks=as_band_looks(self.edge_look))
+        return est, band_verdict(est, self.limits), (time.perf_counter() - t) * 1e3
+
+    def _apply_band(self, est, q, frame: int, pose: Pose, std_dof: np.ndarray,
+                    lines: np.ndarray, edges_used: np.ndarray) -> tuple[str, str]:
+        """Take up a re-anchor's band fit of frame ``frame`` (tracked ``pose``, ``lines``):
+        ``("", "re-anchored")`` with the offsets measured, ``("", "re-anchor refused ...")``
+        with the offsets kept, or ``(reason, "")`` when the band's design edge and the
+        tracked pose disagree (the frame is then measured in full)."""
+        if not q.ok:
+            return "", f"re-anchor refused ({q.reason}): the last offsets kept"
+        band = Pose(est.R_cam_holder, est.t_cam_holder_mm)
+        std_band = q.budget.std_dof
+        diff = band.dof - pose.dof
+        diff[:3] = wrap_deg(diff[:3])
+        z = np.abs(diff) / np.hypot(std_band, std_dof)
+        j = int(np.argmax(z))
+        if not z[j] <= self.tp.anchor_gate_sigma:
+            return (f"re-anchor: the band's design edge and the tracked pose differ by "
+                    f"{diff[j]:.3g} {DOF_NAMES[j].split('_')[1]} in {DOF_NAMES[j]} ({z[j]:.1f} "
+                    f"std > {self.tp.anchor_gate_sigma}): the tracking or the band fit is "
+                    "wrong"), ""
+        self._set_offsets(band, lines, edges_used, std_band, frame,
+                          max(self.tp.anchor_gain, 1.0 / (self._anchors + 1)))
+        return "", "re-anchored"
+
     def _reanchor(self, img: np.ndarray, res: TrackResult, timings: dict) -> TrackResult | str:
         """Measure the design edge again on a tracked frame (module doc, "Broken edges"): the
         band fit from the tracked pose, judged by its own verdict and against the tracked
         pose; the offsets measured from this frame's tracked edges at the band's pose and the
         edges fitted again with them. The tracked frame (or, when the two poses disagree, the
         reason for a full measurement)."""
-        tp = self.tp
         t = time.perf_counter()
         # whatever the outcome, the next attempt after the view has changed as much again
         self._anchor_t_mm, self._anchor_frame = res.pose.t_mm.copy(), res.frame
         self._attempts += 1
-        start = PoseEstimate("track", res.pose.R, res.pose.t_mm.copy())
-        est = measure_band(img, self.camera, self.holder, start, res.edges_used,
-                           EDGE_SHAPE_FITS[self.limits.edge_shape], tp.anchor_passes,
-                           looks=as_band_looks(self.edge_look))
-        q = band_verdict(est, self.limits)
-        timings["anchor"] = (time.perf_counter() - t) * 1e3
-        if not q.ok:
-            res.anchor = f"re-anchor refused ({q.reason}): the last offsets kept"
+        est, q, timings["anchor"] = self._band_fit(img, res.pose, res.edges_used)
+        why, note = self._apply_band(est, q, res.frame, res.pose, res.std_dof,
+                                     res.lines_ideal, res.edges_used)
+        if why:
+            return why
+        if note != "re-anchored":
+            res.anchor = note
             return res
-        band = Pose(est.R_cam_holder, est.t_cam_holder_mm)
-        std_band = q.budget.std_dof
-        diff = band.dof - res.pose.dof
-        diff[:3] = wrap_deg(diff[:3])
-        z = np.abs(diff) / np.hypot(std_band, res.std_dof)
-        j = int(np.argmax(z))
-        if not z[j] <= tp.anchor_gate_sigma:
-            return (f"re-anchor: the band's design edge and the tracked pose differ by "
-                    f"{diff[j]:.3g} {DOF_NAMES[j].split('_')[1]} in {DOF_NAMES[j]} ({z[j]:.1f} "
-                    f"std > {tp.anchor_gate_sigma}): the tracking or the band fit is wrong")
-        self._set_offsets(band, res.lines_ideal, res.edges_used, std_band, res.frame,
-                          max(tp.anchor_gain, 1.0 / (self._anchors + 1)))
         # the same edges fitted again with the new offsets, and checked as every tracked frame
         fit = self._fit_lines_pose(res.pose, res.lines_ideal, res.edges_used)
         if isinstance(fit, str):
@@ -635,6 +703,51 @@ class Tracker:
         res.anchor = "re-anchored"
         timings["anchor"] = (time.perf_counter() - t) * 1e3
         return res
+
+    def _start_anchor(self, img: np.ndarray, res: TrackResult) -> None:
+        """A deferred re-anchor of this tracked frame (module doc): the band fit started
+        (in the background thread, or here), its result applied ``anchor_lag`` frames on."""
+        self._anchor_t_mm, self._anchor_frame = res.pose.t_mm.copy(), res.frame
+        self._attempts += 1
+        used = res.edges_used.copy()
+        if self.anchor_thread:
+            if self._executor is None:
+                self._executor = ThreadPoolExecutor(1, thread_name_prefix="cutterpose-anchor")
+            # the caller may reuse its frame buffer (a camera driver's): the thread reads a copy
+            fut = self._executor.submit(self._band_fit, np.array(img, copy=True), res.pose,
+                                        used)
+        else:
+            fut = Future()
+            try:
+                fut.set_result(self._band_fit(img, res.pose, used))
+            except CutterposeError as e:
+                fut.set_exception(e)
+        at = res.frame + self.tp.anchor_lag
+        self._pending = (at, fut, (res.frame, res.pose, res.std_dof.copy(),
+                                   res.lines_ideal.copy(), used))
+        res.anchor = "; ".join(filter(None, [res.anchor,
+                                             f"re-anchor started (applied at frame {at})"]))
+
+    def _take_anchor(self, k: int, timings: dict) -> tuple[str, str]:
+        """Take up the deferred re-anchor due on frame ``k`` (waiting for its band fit):
+        ``(reason for a full measurement or "", note for this frame)``."""
+        if self._pending is None or k < self._pending[0]:
+            return "", ""
+        _, fut, (j, pose, std, lines, used) = self._pending
+        self._pending = None
+        t = time.perf_counter()
+        try:
+            est, q, fit_ms = fut.result()
+        except CutterposeError as e:
+            return f"re-anchor (frame {j}): {type(e).__name__}: {e}", ""
+        finally:
+            timings["anchor_wait"] = (time.perf_counter() - t) * 1e3
+        timings["anchor_fit"] = fit_ms
+        why, note = self._apply_band(est, q, j, pose, std, lines, used)
+        if why:
+            return why.replace("re-anchor:", f"re-anchor (frame {j}):", 1), ""
+        return "", note.replace("re-anchor", f"re-anchor (frame {j})", 1) \
+            if note != "re-anchored" else f"re-anchored (frame {j})"
 
     def _filter(self, res: TrackResult, force: str) -> None:
         if self.filter is not None and res.pose is not None:
