@@ -251,6 +251,8 @@ def main() -> int:
                     help="a TrackParams field (repeatable), e.g. max_rms_px=0.5")
     a = ap.parse_args()
     def number(v: str):
+        if v.lower() in ("true", "false"):
+            return v.lower() == "true"
         try:
             return int(v)
         except ValueError:

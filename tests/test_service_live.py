@@ -87,6 +87,29 @@ def test_client_round_trip(server, images, tmp_path):
     assert e.value.status == 401
 
 
+def test_client_tracks_an_approach(server, images):
+    """Client.track: the frames of a session answered in order (the first measured in full,
+    the next from it), raw arrays and PNG bytes; closed by the with block."""
+    import cv2
+
+    grey = cv2.imdecode(np.frombuffer(images[1], np.uint8), cv2.IMREAD_GRAYSCALE)
+    with Client(server.url, token=TOKEN) as c:
+        with c.track(filter=False) as t:
+            a = t.frame(images[1], content_type="image/png")
+            b = t.frame(grey, flange_pose=[850, -120, 1430, 0, 0, 0, 1])
+            assert (a["mode"], b["mode"]) == ("full", "track"), (a, b)
+            assert (a["frame"], b["frame"]) == (0, 1) and a["filtered_pose"] is None
+            assert abs(a["pose"]["Z_mm"] - b["pose"]["Z_mm"]) < 1.0
+            # no hand-eye file in this cell: the base frame says why it is missing
+            assert b["robot"] == {"available": False,
+                                  "reason": "the cell file names no hand-eye file"}
+            assert t.status()["frames"] == 2
+        with pytest.raises(ServiceError) as e:
+            t.frame(grey)
+        assert e.value.status == 404
+        t.close()   # closed twice: nothing to do
+
+
 def _measured(url) -> float:
     text = httpx.get(url + "/metrics", headers=AUTH).text
     return float(next(line.split()[1] for line in text.splitlines()

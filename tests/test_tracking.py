@@ -272,6 +272,53 @@ def test_offset_polygon_moves_every_edge_along_its_normal():
     np.testing.assert_allclose(q_cw[::-1, :2], q[:, :2], atol=1e-9)
 
 
+def test_offsets_at_both_ends_follow_a_tilted_edge():
+    """A worn edge's break varies along it: the tracked line is tilted against the design
+    edge. With an offset at each end (``anchor_ends``, the default) the anchor puts the moved
+    model exactly on such lines, and the pose fitted to them from a nearby start is the
+    anchor's pose; with one offset per edge, half the tilt is left at each end and the pose
+    absorbs it."""
+    from cutterpose.geometry.camera import default_camera
+    from cutterpose.tracking import TrackParams, offset_edge_ends_mm, offset_polygon_mm
+
+    hol = default_holder()
+    c = np.asarray(hol.corners_mm, float)
+    n = len(c)
+    rng = np.random.default_rng(3)
+    d = np.column_stack([rng.uniform(0.2, 1.5, n), rng.uniform(0.2, 1.5, n)])
+    # (N, 2) with equal ends is the one-offset polygon; the ends lie on the moved lines
+    np.testing.assert_allclose(offset_polygon_mm(c, np.column_stack([d[:, 0], d[:, 0]])),
+                               offset_polygon_mm(c, d[:, 0]), atol=1e-9)
+    q = offset_polygon_mm(c, d)[:, :2]
+    ends = offset_edge_ends_mm(c, d)[:, :2]
+    for k in range(n):   # corners k and k + 1 of the moved polygon lie on edge k's line
+        a, b = ends[k], ends[n + k]
+        t = (b - a) / np.linalg.norm(b - a)
+        for p in (q[k], q[(k + 1) % n]):
+            assert abs(t[0] * (p - a)[1] - t[1] * (p - a)[0]) < 1e-9
+    pose = Pose.from_euler(2.0, -3.0, 1.0, 5.0, -4.0, 700.0)
+    cam = default_camera("table1")
+    K = np.array(cam.K, float)
+    X = pose.apply(np.column_stack([ends, np.zeros(2 * n)]))
+    uv = X[:, :2] / X[:, 2:3] @ K[:2, :2].T + K[:2, 2]
+    lines = np.cross(np.column_stack([uv[:n], np.ones(n)]),
+                     np.column_stack([uv[n:], np.ones(n)]))
+    lines /= np.linalg.norm(lines[:, :2], axis=1)[:, None]
+    seen = np.ones(n, bool)
+    start = Pose.from_euler(2.05, -3.05, 1.02, 5.1, -4.1, 701.0)
+    err = {}
+    for ends_on in (True, False):
+        tr = Tracker(cam, hol, method="dm+b", track=TrackParams(anchor_ends=ends_on))
+        tr._set_offsets(pose, lines, seen, np.zeros(6), 0, 1.0)
+        fit = tr._fit_lines_pose(start, lines, seen)
+        err[ends_on] = np.abs(fit[0].dof - pose.dof)
+        if ends_on:
+            np.testing.assert_allclose(tr._offset_mm, d, atol=1e-6)
+            assert np.abs(fit[1]).max() < 1e-6          # every end on its line
+    assert err[True].max() < 1e-6, err[True]
+    assert err[False][:3].max() > 0.1, err[False]        # a tilt: the ends' misfit absorbed
+
+
 def test_tracker_reanchors_when_the_break_changes(changing_break):
     """The offsets measured at the full measurement no longer hold once the break's image has
     changed: carried, every tracked frame is ~1 mm off in depth (beyond 2.5 std); re-anchored,

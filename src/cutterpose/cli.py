@@ -602,47 +602,55 @@ def track_cmd(
     json_lines: bool = typer.Option(False, "--json-lines", help="One JSON object per frame."),
     edge_break_mm: float = _edge_break_option(),
     edge_look: str = _edge_look_option(),
+    anchor_lag: int = typer.Option(None, min=0, help="dm+b: run the re-anchors' band fits "
+                                   "(~200 ms) beside the tracking and apply them this many "
+                                   "frames later (0: on their frame, which waits; default: "
+                                   "the tracker's)."),
 ):
     """Track the holder through a sequence: edges predicted from the previous pose, the full
     measurement on the first frame and whenever tracking fails (said per frame)."""
-    import json as _json
+    from dataclasses import replace
 
     import numpy as np
 
     from .frames import parse_raw_size
     from .geometry.holder import load_holder
-    from .tracking import Tracker
+    from .tracking import Tracker, TrackParams, approach_limits
 
     cam = _render_camera(camera)
     look = _load_edge_look(edge_look)
-    from dataclasses import replace
-
-    from .tracking import approach_limits
-
     limits = replace(approach_limits(), edge_break_mm=edge_break_mm)
+    tp = TrackParams() if anchor_lag is None else TrackParams(anchor_lag=anchor_lag)
     tracker = Tracker(cam, load_holder(holder) if holder else None, method, limits=limits,
-                      filter=filter_, edge_look=look)
+                      filter=filter_, edge_look=look, track=tp)
     size = parse_raw_size(raw) if raw else None
     modes, times, anchors = {}, [], 0
-    for name, frame in _frames(source, size):
-        r = tracker.update(frame)
-        modes[r.mode] = modes.get(r.mode, 0) + 1
-        anchors += r.anchor == "re-anchored"
-        if r.mode == "track":
-            times.append(r.timings_ms["total"])
-        if json_lines:
-            typer.echo(_json.dumps({"file": name} | r.to_dict()))
-        else:
-            pose = ("  ".join(f"{v:8.3f}" for v in r.pose.dof) if r.pose is not None
-                    else "no pose")
-            note = f"  ({r.fallback_reason})" if r.fallback_reason and r.frame else ""
-            note += f"  ({r.anchor})" if r.anchor else ""
-            typer.echo(f"{name:24s} {r.mode:5s} {pose}  {r.timings_ms['total']:6.1f} ms{note}")
+    with tracker:
+        results = ((name, tracker.update(frame)) for name, frame in _frames(source, size))
+        for name, r in results:
+            _track_line(r, name, modes, times, json_lines)
+            anchors += r.anchor.startswith("re-anchored")
     med = f", tracking median {np.median(times):.1f} ms/frame" if times else ""
     log(f"{sum(modes.values())} frames: {modes.get('track', 0)} tracked, "
         f"{modes.get('full', 0)} full measurements (first + fall-backs), "
         f"{modes.get('lost', 0)} lost{med}"
         + (f"; {anchors} re-anchored (band fit)" if anchors else ""))
+
+
+def _track_line(r, name: str, modes: dict, times: list, json_lines: bool) -> None:
+    """One frame of ``cutterpose track``: counted, and printed (a line, or JSON)."""
+    import json as _json
+
+    modes[r.mode] = modes.get(r.mode, 0) + 1
+    if r.mode == "track":
+        times.append(r.timings_ms["total"])
+    if json_lines:
+        typer.echo(_json.dumps({"file": name} | r.to_dict()))
+        return
+    pose = "  ".join(f"{v:8.3f}" for v in r.pose.dof) if r.pose is not None else "no pose"
+    note = f"  ({r.fallback_reason})" if r.fallback_reason and r.frame else ""
+    note += f"  ({r.anchor})" if r.anchor else ""
+    typer.echo(f"{name:24s} {r.mode:5s} {pose}  {r.timings_ms['total']:6.1f} ms{note}")
 
 
 @app.command("render-sequence")

@@ -44,9 +44,13 @@ shifted by ``d_k`` mm along its outward normal in the face plane
 length on the holder; then the fitted pose is the design edge's directly.
 
 * **measuring the offsets** (an *anchor*): at a ``dm+b`` pose ``T`` and this frame's tracked
-  lines, ``d_k`` is the least-squares shift that puts both projected ends of design edge ``k``
-  on its line (Gauss-Newton on one unknown per edge); at the full measurement (first frame,
-  fall-backs) from the full ``dm+b`` pose;
+  lines, each end of design edge ``k`` gets the shift along the edge's normal that puts it,
+  projected, on the tracked line (``d_k0`` at corner ``k``, ``d_k1`` at corner ``k + 1``;
+  Newton, one unknown per end): the break of a worn edge varies along it, so its tracked line
+  is tilted against the design edge, and one offset per edge (``anchor_ends=False``, the
+  earlier model) left half that tilt at each end for the pose to absorb (pbr ``worn``
+  approach: tracked - full pose 2.45 -> 1.25 of the full std, median; docs/RESULTS.md
+  section 13); at the full measurement (first frame, fall-backs) from the full ``dm+b`` pose;
 * **re-anchoring** (``dm+b`` only): ``d_k`` is not quite a constant length: measured against
   the true pose on every frame of the 900 -> 600 mm approaches, the mean offset fell from 0.16
   to 0.08 mm (analytic ``new``) and from 0.28 to 0.22 mm (pbr ``new``), per edge close to
@@ -144,7 +148,8 @@ from .solvers.edge_band import as_band_looks, measure_band
 from .solvers.estimate import PoseEstimate
 
 __all__ = ["TrackParams", "TrackResult", "Tracker", "PoseFilter", "approach_limits",
-           "approach_params", "se3_exp", "se3_log", "offset_polygon_mm"]
+           "approach_params", "se3_exp", "se3_log", "offset_polygon_mm",
+           "offset_edge_ends_mm"]
 
 
 # ------------------------------------------------------------------------------------------
@@ -192,19 +197,45 @@ def offset_polygon_mm(corners_mm: np.ndarray, offset_mm: np.ndarray) -> np.ndarr
     """(N, 3) corners (holder frame, ``Z = 0``) of the polygon whose edge ``k`` is the design
     edge ``k`` moved by ``offset_mm[k]`` along its outward normal in the face plane (negative:
     into the pocket); corner ``i`` is where the moved edges ``i - 1`` and ``i`` meet (corners of
-    nearly parallel neighbours are moved along the edge normal instead)."""
+    nearly parallel neighbours are moved along the edge normal instead).
+
+    ``offset_mm`` (N,): one offset per edge; (N, 2): an offset at each end of every edge
+    (``[k, 0]`` at corner ``k``, ``[k, 1]`` at corner ``k + 1``): the moved edge is the line
+    through both moved ends, tilted against the design edge when they differ."""
     c = np.asarray(corners_mm, float)
     d = np.asarray(offset_mm, float)
     n = outward_edge_normals(c)
-    rhs = np.einsum("ij,ij->i", n, c) + d            # edge k: n_k . x = n_k . c_k + d_k
-    A = np.stack([np.roll(n, 1, axis=0), n], axis=1)  # corner i: edges i - 1 and i
-    b = np.column_stack([np.roll(rhs, 1), rhs])
-    det = np.linalg.det(A)
-    ok = np.abs(det) > 1e-6
-    q = c + d[:, None] * n
+    if d.ndim == 2:
+        a = c + d[:, 0:1] * n                               # edge k: through a_k and b_k
+        b = np.roll(c, -1, axis=0) + d[:, 1:2] * n
+        t = b - a
+        n_m = np.column_stack([t[:, 1], -t[:, 0]]) / np.linalg.norm(t, axis=1)[:, None]
+        n_m *= np.sign(np.einsum("ij,ij->i", n_m, n))[:, None]
+        rhs = np.einsum("ij,ij->i", n_m, a)
+        q = a.copy()
+    else:
+        n_m = n
+        rhs = np.einsum("ij,ij->i", n, c) + d            # edge k: n_k . x = n_k . c_k + d_k
+        q = c + d[:, None] * n
+    A = np.stack([np.roll(n_m, 1, axis=0), n_m], axis=1)  # corner i: edges i - 1 and i
+    b2 = np.column_stack([np.roll(rhs, 1), rhs])
+    ok = np.abs(np.linalg.det(A)) > 1e-6
     if ok.any():
-        q[ok] = np.linalg.solve(A[ok], b[ok][..., None])[..., 0]
+        q[ok] = np.linalg.solve(A[ok], b2[ok][..., None])[..., 0]
     return np.column_stack([q, np.zeros(len(q))])
+
+
+def offset_edge_ends_mm(corners_mm: np.ndarray, offset_mm: np.ndarray) -> np.ndarray:
+    """(2N, 3) ends of the moved edges (holder frame, ``Z = 0``): rows ``k`` the start of edge
+    ``k`` (design corner ``k`` moved by ``offset_mm[k, 0]`` along the edge's outward normal),
+    rows ``N + k`` its end (corner ``k + 1`` by ``offset_mm[k, 1]``); ``offset_mm`` (N,) is
+    the same offset at both ends."""
+    c = np.asarray(corners_mm, float)
+    d = np.asarray(offset_mm, float)
+    d = np.column_stack([d, d]) if d.ndim == 1 else d
+    n = outward_edge_normals(c)
+    e = np.concatenate([c + d[:, 0:1] * n, np.roll(c, -1, axis=0) + d[:, 1:2] * n])
+    return np.column_stack([e, np.zeros(len(e))])
 
 
 # ------------------------------------------------------------------------------------------
@@ -258,6 +289,10 @@ class TrackParams:
     #: after a full measurement, this many tracked frames re-anchor whatever the view's change
     #: (one measurement of the offsets carries its pose's error to every frame after it)
     anchor_warmup: int = 2
+    #: an offset at each end of every edge (True) or one per edge: the break of a worn edge
+    #: varies along it, so the edge tracked is tilted against the design edge, and one
+    #: offset per edge leaves half that tilt at each end for the pose to absorb
+    anchor_ends: bool = True
     #: the band's pose and the tracked pose may differ per DOF by this many combined std;
     #: beyond, one of them is wrong and the frame is measured in full
     anchor_gate_sigma: float = 5.0
@@ -465,6 +500,8 @@ class Tracker:
         # the design contour moved by the offsets of the edges tracked from the design edge
         self._offset_mm: np.ndarray | None = None
         self._model_mm = self.holder.points_holder_mm
+        # the ends of every model edge (2N, 3): P_k, then P_k+1, fitted to the tracked lines
+        self._ends_mm = np.concatenate([self._model_mm, np.roll(self._model_mm, -1, axis=0)])
         self._anchor_t_mm: np.ndarray | None = None   # where the offsets were measured
         self._anchor_frame = -1
         self._anchor_std = np.zeros(6)   # std of the pose the offsets were measured at
@@ -602,11 +639,11 @@ class Tracker:
 
     def _set_offsets(self, pose: Pose, lines: np.ndarray, seen: np.ndarray, std_dof,
                      k: int, gain: float) -> None:
-        """Each seen edge's offset (mm, face plane, outward normal) from the design edge: the
-        shift of design edge ``k`` that puts both its ends, projected at the design ``pose``,
-        on the tracked line (least squares, Gauss-Newton), weighted by ``gain`` against the
-        offset carried; an edge not seen keeps its last offset (the seen edges' median the
-        first time)."""
+        """Each seen edge's offsets (mm, face plane, outward normal) from the design edge: the
+        shift of each end of design edge ``k`` that puts it, projected at the design ``pose``,
+        on the tracked line (Newton; ``anchor_ends=False``: one shift for both ends, least
+        squares), weighted by ``gain`` against the offsets carried; an edge not seen keeps its
+        last offsets (the seen edges' median the first time)."""
         c = np.asarray(self.holder.corners_mm, float)
         nrm = self.holder.edge_normals
         ks = np.nonzero(seen)[0]
@@ -617,24 +654,32 @@ class Tracker:
         L = np.concatenate([lines[ks], lines[ks]])
         Rn = np.column_stack([nn, np.zeros(len(nn))]) @ pose.R.T     # d X_cam / d offset
         K2 = self.K[:2, :2]
-        d = np.zeros(len(ks))
+        m = len(ks)
+        d = np.zeros(2 * m)          # per end (anchor_ends) or, pooled, per edge
         for _ in range(3):   # the projection is nearly linear over a millimetre
-            dd = np.concatenate([d, d])
-            X = np.column_stack([ends + dd[:, None] * nn, np.zeros(len(nn))]) @ pose.R.T \
+            X = np.column_stack([ends + d[:, None] * nn, np.zeros(len(nn))]) @ pose.R.T \
                 + pose.t_mm
             uv = X[:, :2] / X[:, 2:3] @ K2.T + self.K[:2, 2]
             r = L[:, 0] * uv[:, 0] + L[:, 1] * uv[:, 1] + L[:, 2]
             duv = (Rn[:, :2] - X[:, :2] / X[:, 2:3] * Rn[:, 2:3]) / X[:, 2:3] @ K2.T
             g = L[:, 0] * duv[:, 0] + L[:, 1] * duv[:, 1]
-            m = len(ks)
-            d = d - (r[:m] * g[:m] + r[m:] * g[m:]) / (g[:m] ** 2 + g[m:] ** 2)
+            if self.tp.anchor_ends:
+                d = d - r / g
+            else:
+                step = (r[:m] * g[:m] + r[m:] * g[m:]) / (g[:m] ** 2 + g[m:] ** 2)
+                d = d - np.concatenate([step, step])
+        d = np.column_stack([d[:m], d[m:]])
         if self._offset_mm is None:
-            off, gain = np.full(len(c), float(np.median(d))), 1.0
+            off, gain = np.full((len(c), 2), float(np.median(d))), 1.0
         else:
             off = self._offset_mm.copy()
         off[ks] += gain * (d - off[ks])
         self._offset_mm = off
         self._model_mm = offset_polygon_mm(c, off)
+        # one offset per edge: the moved polygon's corners are its edges' ends (as before the
+        # ends had offsets of their own)
+        self._ends_mm = offset_edge_ends_mm(c, off) if self.tp.anchor_ends else \
+            np.concatenate([self._model_mm, np.roll(self._model_mm, -1, axis=0)])
         self._anchor_t_mm, self._anchor_frame = pose.t_mm.copy(), k
         self._anchor_std = np.where(np.isfinite(std_dof), std_dof, 0.0)
         self._anchors += 1
@@ -881,12 +926,11 @@ class Tracker:
         hidden still counts through its seen one (Drummond & Cipolla 2002: distances along
         the edge normals). Parameters: the six DOFs. Returns the pose, the residuals at the
         end and at the start (each (2 m,)) and the final Jacobian (2 m, 6), or a reason."""
-        P = self._model_mm
-        n = len(P)
+        n = len(self._model_mm)
         ks = np.nonzero(seen)[0]
         rows = np.concatenate([ks, n + ks])        # of the ends (P_k, P_k+1) of all edges
         L = np.concatenate([lines[ks], lines[ks]])
-        Pe = np.concatenate([P, np.roll(P, -1, axis=0)])[rows]
+        Pe = self._ends_mm[rows]
 
         def residuals(ps: Pose):
             X = ps.apply(Pe)
@@ -923,9 +967,7 @@ class Tracker:
 
     def _end_jacobian(self, pose: Pose) -> np.ndarray:
         """Pixel Jacobian (80, 6) of both ends of every edge (``P_k``, then ``P_k+1``)."""
-        P = self._model_mm
-        return pixel_jacobian(pose.R, pose.t_mm, np.concatenate([P, np.roll(P, -1, axis=0)]),
-                              self.K)[0]
+        return pixel_jacobian(pose.R, pose.t_mm, self._ends_mm, self.K)[0]
 
     def _check(self, pose: Pose, r: np.ndarray, J: np.ndarray, J2: np.ndarray,
                seen: np.ndarray):

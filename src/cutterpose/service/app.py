@@ -35,8 +35,17 @@ from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from pydantic import ValidationError
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
+from ..errors import CutterposeError
 from .config import Cell
-from .jobs import FORMATS, MEDIA_TYPES, check_encoded, init_worker, measure_job, overlay_job
+from .jobs import (
+    FORMATS,
+    MEDIA_TYPES,
+    check_encoded,
+    decode_image,
+    init_worker,
+    measure_job,
+    overlay_job,
+)
 from .metrics import CONTENT_TYPE_LATEST, Metrics, MetricsMiddleware
 from .models import (
     ErrorBody,
@@ -46,9 +55,14 @@ from .models import (
     MeasurementRecord,
     MeasureQuery,
     Ready,
+    TrackCreate,
+    TrackFrameOut,
+    TrackFrameQuery,
+    TrackInfo,
     parse_flange_pose,
 )
 from .store import Store
+from .tracks import TooManyTracksError, TrackSessions, track_frame
 from .workers import (
     DeadlineExceededError,
     JobError,
@@ -64,7 +78,9 @@ ID_PATTERN = r"^[0-9a-f]{32}$"
 _ERRORS = {400: "Malformed request", 401: "Missing or wrong bearer token",
            404: "Not found", 409: "Request id reused for a different request",
            413: "Body larger than the limit", 415: "Unsupported content type",
-           422: "Invalid parameters or unusable image", 500: "Service fault",
+           422: "Invalid parameters or unusable image",
+           429: "Too many tracking sessions open (retry after Retry-After seconds)",
+           500: "Service fault",
            503: "Busy (retry after Retry-After seconds) or not ready", 504: "Deadline exceeded"}
 
 
@@ -139,9 +155,11 @@ def create_app(cell: Cell, pool: WorkerPool | None = None) -> FastAPI:
         app.state.store, app.state.pool = store, p
         app.state.metrics = Metrics(p, store)
         app.state.inflight = {}
+        app.state.tracks = TrackSessions(cell, settings.max_tracks, settings.track_idle_s)
         try:
             yield
         finally:
+            await asyncio.to_thread(app.state.tracks.close_all)
             await asyncio.to_thread(p.close)
             store.close()
 
@@ -474,6 +492,108 @@ def create_app(cell: Cell, pool: WorkerPool | None = None) -> FastAPI:
                            "image_unusable" if not e.internal else "internal_error",
                            str(e)) from None
         return Response(png, media_type="image/png")
+
+    # -- tracking sessions ---------------------------------------------------------------
+    def get_tracks(request: Request) -> TrackSessions:
+        return request.app.state.tracks
+
+    TracksDep = Annotated[TrackSessions, Depends(get_tracks)]
+    TrackId = Annotated[str, Path(pattern=ID_PATTERN, description="Tracking session id.")]
+
+    def session_of(tracks: TrackSessions, track_id: str):
+        s = tracks.get(track_id)
+        if s is None:
+            raise ApiError(404, "not_found", f"no tracking session {track_id} (closed, or idle "
+                           f"for more than {settings.track_idle_s:g} s)")
+        return s
+
+    @app.post("/v1/tracks", response_model=TrackInfo, status_code=201, dependencies=auth,
+              responses=_responses(401, 422, 429), tags=["tracking"])
+    async def create_track(body: TrackCreate, tracks: TracksDep):
+        """Open a tracking session for one approach: send its frames in order to
+        ``/v1/tracks/{id}/frames``; the first is measured in full."""
+        if body.holder is not None and body.holder not in cell.holders:
+            raise ApiError(422, "validation_error", f"holder {body.holder!r} is not in the "
+                           f"cell file ({', '.join(sorted(cell.holders))})")
+        try:
+            s = await asyncio.to_thread(tracks.create, body.holder, body.filter,
+                                        body.anchor_lag)
+        except TooManyTracksError as e:
+            raise ApiError(429, "too_many_tracks", str(e), headers={
+                "Retry-After": str(int(math.ceil(settings.track_idle_s)))}) from None
+        return JSONResponse(s.info(settings.track_idle_s), status_code=201)
+
+    @app.get("/v1/tracks/{track_id}", response_model=TrackInfo, dependencies=auth,
+             responses=_responses(401, 404, 422), tags=["tracking"])
+    async def get_track(track_id: TrackId, tracks: TracksDep):
+        """A session: frames answered, the last frame's mode."""
+        return JSONResponse(session_of(tracks, track_id).info(settings.track_idle_s))
+
+    @app.delete("/v1/tracks/{track_id}", status_code=204, dependencies=auth,
+                responses=_responses(401, 404, 422), response_class=Response,
+                tags=["tracking"])
+    async def delete_track(track_id: TrackId, tracks: TracksDep):
+        """Close a session (its tracker and its background thread)."""
+        s = session_of(tracks, track_id)
+        async with s.lock:    # after a frame being tracked
+            await asyncio.to_thread(tracks.close, track_id)
+        return Response(status_code=204)
+
+    @app.post("/v1/tracks/{track_id}/frames", response_model=TrackFrameOut, dependencies=auth,
+              responses=_responses(400, 401, 404, 413, 415, 422, 500),
+              openapi_extra={"requestBody": {
+                  **_OPENAPI_BODY["requestBody"],
+                  "content": {k: v for k, v in _OPENAPI_BODY["requestBody"]["content"].items()
+                              if k != "application/json"}}},
+              tags=["tracking"])
+    async def post_frame(request: Request, track_id: TrackId,
+                         q: Annotated[TrackFrameQuery, Query()], tracks: TracksDep):
+        """The next frame of the session: its pose from the previous ones (or a full
+        measurement, with the reason). Not stored."""
+        t0 = time.perf_counter()
+        s = session_of(tracks, track_id)
+        ctype = request.headers.get("content-type", "").split(";")[0].strip().lower()
+        if ctype not in FORMATS:
+            raise ApiError(415, "unsupported_media_type",
+                           f"content type {ctype or '(none)'!r} not accepted for frames: send "
+                           "image/png, image/tiff, image/jpeg or application/octet-stream "
+                           "(raw 8-bit, with width and height)")
+        fmt = FORMATS[ctype]
+        if fmt == "raw" and (q.width is None or q.height is None):
+            raise ApiError(422, "validation_error", "raw 8-bit frames need width and height")
+        if fmt != "raw" and (q.width is not None or q.height is not None):
+            raise ApiError(422, "validation_error", "width and height are for raw frames only")
+        try:
+            row = parse_flange_pose(q.flange_pose) if q.flange_pose is not None else None
+        except ValueError as e:
+            raise ApiError(422, "bad_flange_pose", str(e)) from None
+        data = await read_body(request)
+        try:
+            if fmt != "raw":
+                check_encoded(data, fmt)
+            t1 = time.perf_counter()
+            img = await asyncio.to_thread(decode_image, data, fmt, (q.width, q.height),
+                                          tuple(cell.camera.image_size_px))
+        except Exception as e:  # ImageError: the message says what is wrong
+            raise ApiError(422, "image_unusable", str(e)) from None
+        t2 = time.perf_counter()
+        async with s.lock:
+            if tracks.get(track_id) is not s:
+                raise ApiError(404, "not_found", f"tracking session {track_id} was closed")
+            t3 = time.perf_counter()
+            try:
+                out = await asyncio.to_thread(track_frame, s, cell, img, row)
+            except CutterposeError as e:
+                raise ApiError(422, "bad_input", f"{type(e).__name__}: {e}") from None
+            finally:
+                s.last_used = time.monotonic()
+        t4 = time.perf_counter()
+        out = _finite(out)
+        out["track_id"] = s.id
+        out["timings_ms"] = out.get("timings_ms", {}) | {
+            "decode_ms": round((t2 - t1) * 1e3, 3), "wait_ms": round((t3 - t2) * 1e3, 3),
+            "track_ms": round((t4 - t3) * 1e3, 3), "total_ms": round((t4 - t0) * 1e3, 3)}
+        return JSONResponse(out)
 
     # -- service -------------------------------------------------------------------------
     @app.get("/health", response_model=Health, tags=["service"])

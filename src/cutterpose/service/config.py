@@ -134,6 +134,8 @@ class _Service(_Strict):
     max_body_mb: Positive = 64.0
     image_cap_mb: float = Field(2048.0, ge=0, allow_inf_nan=False)
     token_file: str | None = None
+    max_tracks: int = Field(4, ge=0, le=1024)
+    track_idle_s: Positive = 60.0
 
 
 class _CellFile(_Strict):
@@ -160,6 +162,8 @@ class ServiceSettings:
     deadline_s: float
     max_body_bytes: int
     image_cap_bytes: int
+    max_tracks: int = 4            #: tracking sessions open at once (:mod:`.tracks`)
+    track_idle_s: float = 60.0     #: a session unused this long is closed
 
 
 @dataclass(frozen=True)
@@ -321,7 +325,8 @@ def load_cell(path: str | Path | None = None, env: dict | None = None,
         data_dir=Path(data_dir).expanduser().resolve(), workers=workers,
         queue_size=s.queue_size, deadline_s=float(s.deadline_s),
         max_body_bytes=int(s.max_body_mb * 2 ** 20),
-        image_cap_bytes=int(s.image_cap_mb * 2 ** 20))
+        image_cap_bytes=int(s.image_cap_mb * 2 ** 20),
+        max_tracks=s.max_tracks, track_idle_s=float(s.track_idle_s))
     token = ""
     if need_token:
         try:

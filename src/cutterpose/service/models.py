@@ -18,7 +18,8 @@ from typing import Literal
 from pydantic import BaseModel, ConfigDict, Field
 
 __all__ = ["ErrorBody", "MeasureQuery", "MeasureJSON", "MeasurementRecord", "MeasurementList",
-           "Ready", "Health", "parse_flange_pose", "FLANGE_POSE_DOC", "REQUEST_ID_PATTERN"]
+           "Ready", "Health", "parse_flange_pose", "FLANGE_POSE_DOC", "REQUEST_ID_PATTERN",
+           "TrackCreate", "TrackInfo", "TrackFrameQuery", "TrackFrameOut"]
 
 REQUEST_ID_PATTERN = r"^[A-Za-z0-9._:-]{1,128}$"
 FLANGE_POSE_DOC = ("The robot's flange pose T_base_flange when the picture was taken, as the "
@@ -73,7 +74,7 @@ class ErrorBody(_Model):
                        "unsupported_media_type, empty_body, bad_json, validation_error, "
                        "bad_flange_pose, image_unusable, bad_input, conflict, not_found, "
                        "image_not_kept, queue_full, deadline_exceeded, worker_crashed, "
-                       "shutting_down, internal_error")
+                       "shutting_down, internal_error, too_many_tracks")
     message: str = Field(description="One line for a person.")
     detail: list | None = Field(None, description="Per-field errors of a validation_error.")
 
@@ -225,3 +226,66 @@ class Ready(_Model):
     workers: list[dict] = Field(description="Per worker: pid, alive, ready, busy, restarts.")
     queued: int = Field(description="Requests waiting for a worker.")
     cell: dict = Field(description="Camera, holders, method of the cell file.")
+
+
+# -- tracking sessions (:mod:`.tracks`) ---------------------------------------------------
+class TrackCreate(_Model):
+    """``POST /v1/tracks``: a tracking session for one approach."""
+
+    holder: str | None = Field(None, max_length=64, description="Holder model name from the "
+                               "cell file (default: the cell's default_holder).")
+    filter: bool = Field(True, description="Also report the temporal filter's pose "
+                         "(constant velocity on SE(3)) beside the raw per-frame pose.")
+    anchor_lag: int | None = Field(None, ge=0, le=30, description="dm+b: re-anchors (the band "
+                                   "fit, ~200 ms) run beside the tracking and are applied this "
+                                   "many frames later (0: on their frame, which then waits; "
+                                   "default: the tracker's).")
+
+
+class TrackInfo(_Model):
+    """A tracking session."""
+
+    id: str = Field(description="Session id (32 hex digits).")
+    created_at: str = Field(description="ISO 8601 UTC.")
+    holder: str
+    method: str = Field(description="The full measurement's pose method (first frame, "
+                        "fall-backs).")
+    frames: int = Field(description="Frames answered so far.")
+    last_mode: Literal["track", "full", "lost"] | None = Field(description="The last frame's "
+                                                               "mode.")
+    idle_timeout_s: float = Field(description="The session is closed after this long "
+                                  "without a frame.")
+    filter: bool
+    anchor_lag: int
+
+
+class TrackFrameQuery(_Model):
+    """Query parameters of ``POST /v1/tracks/{id}/frames`` with an image body."""
+
+    flange_pose: str | None = Field(None, description=FLANGE_POSE_DOC)
+    width: int | None = Field(None, ge=1, le=65535, description="Raw bodies only: image width "
+                              "[px].")
+    height: int | None = Field(None, ge=1, le=65535, description="Raw bodies only: image "
+                               "height [px].")
+
+
+class TrackFrameOut(_Open):
+    """One frame's answer: ``TrackResult.to_dict()`` (as ``cutterpose track --json-lines``)
+    and the base frame."""
+
+    track_id: str
+    frame: int = Field(description="0-based index of the frame in the session.")
+    mode: Literal["track", "full", "lost"] = Field(description="track: from the predicted "
+                                                   "edges; full: measured in full (first "
+                                                   "frame, fall-back); lost: no pose.")
+    ok: bool
+    fallback_reason: str = Field(description="Why the frame was measured in full (or lost).")
+    pose: PoseOut | None
+    std: dict[str, float | None] = Field(description="1-sigma per DOF [deg, mm].")
+    filtered_pose: PoseOut | None = Field(None, description="The temporal filter's pose "
+                                          "(never instead of the raw one).")
+    anchor: str = Field("", description="dm+b: re-anchoring of the edges' offsets from the "
+                        "design edge on this frame.")
+    robot: RobotOut
+    timings_ms: dict[str, float] = Field(description="The tracker's stages, and decode_ms, "
+                                         "track_ms, total_ms of the request [ms].")
