@@ -14,11 +14,9 @@ recording: corners within ``--tol-px`` (0.02 px), poses within ``--tol-mm`` (0.0
 ``--tol-deg`` (0.001 deg), the same seen corners and the same verdict; it exits 1 otherwise.
 
 The recording is of the code it was made with: re-record it right before the speed work it
-is to guard (the one in the repository, of the seventh session, still matches on the 18
-analytic images; on the pbr sets the later sessions' changes to the corner methods' verdict
-and the field chain moved refusal texts and some refused worn poses: 205 differences in the
-tenth session; none accepts a pose the recording refused, two ``dm`` poses on new holders
-are refused now at 0.304-0.305 deg, the ninth session's ``method`` part).
+is to guard. The one in the repository was made in the eleventh session (148 images: the 18
+analytic ones and the dev pbr sets ``pbr_new_s200``, ``pbr_sharp_s100``, ``pbr_worn_s300``,
+``dm+b`` included); the check is exact (0 differences) on the same machine and libraries.
 
 Usage::
 
