@@ -44,13 +44,12 @@ shifted by ``d_k`` mm along its outward normal in the face plane
 length on the holder; then the fitted pose is the design edge's directly.
 
 * **measuring the offsets** (an *anchor*): at a ``dm+b`` pose ``T`` and this frame's tracked
-  lines, each end of design edge ``k`` gets the shift along the edge's normal that puts it,
-  projected, on the tracked line (``d_k0`` at corner ``k``, ``d_k1`` at corner ``k + 1``;
-  Newton, one unknown per end): the break of a worn edge varies along it, so its tracked line
-  is tilted against the design edge, and one offset per edge (``anchor_ends=False``, the
-  earlier model) left half that tilt at each end for the pose to absorb (pbr ``worn``
-  approach: tracked - full pose 2.45 -> 1.25 of the full std, median; docs/RESULTS.md
-  section 13); at the full measurement (first frame, fall-backs) from the full ``dm+b`` pose;
+  lines, ``d_k`` is the least-squares shift that puts both projected ends of design edge ``k``
+  on its line (Gauss-Newton on one unknown per edge); at the full measurement (first frame,
+  fall-backs) from the full ``dm+b`` pose. ``TrackParams.anchor_ends`` gives each end its own
+  shift instead (a worn edge's break varies along it, so its tracked line is tilted against
+  the design edge): closer to the full measurement on worn approaches, but an edge bent by an
+  occluder at the anchor keeps that tilt (docs/RESULTS.md section 13; not the default);
 * **re-anchoring** (``dm+b`` only): ``d_k`` is not quite a constant length: measured against
   the true pose on every frame of the 900 -> 600 mm approaches, the mean offset fell from 0.16
   to 0.08 mm (analytic ``new``) and from 0.28 to 0.22 mm (pbr ``new``), per edge close to
@@ -291,8 +290,12 @@ class TrackParams:
     anchor_warmup: int = 2
     #: an offset at each end of every edge (True) or one per edge: the break of a worn edge
     #: varies along it, so the edge tracked is tilted against the design edge, and one
-    #: offset per edge leaves half that tilt at each end for the pose to absorb
-    anchor_ends: bool = True
+    #: offset per edge leaves half that tilt at each end for the pose to absorb. Not the
+    #: default: on the pbr approaches of the eleventh session it followed the full
+    #: measurement more closely (worn), but an edge whose line was bent by an occluder at the
+    #: anchor keeps that tilt at its ends, and 8 of 20 frames of a held-back ``new`` approach
+    #: fell back (docs/RESULTS.md section 13)
+    anchor_ends: bool = False
     #: the band's pose and the tracked pose may differ per DOF by this many combined std;
     #: beyond, one of them is wrong and the frame is measured in full
     anchor_gate_sigma: float = 5.0
