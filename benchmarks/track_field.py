@@ -16,8 +16,9 @@ the camera come from their ``truth.json``). For every frame, in this order:
 loaded into memory first; no full measurement in the loop): each frame's latency is from its
 arrival to its answer (it waits while the tracker is busy with the one before), and the frames
 answered later than ``1 / F`` after arrival are counted. ``--track anchor_lag=3`` defers the
-``dm+b`` re-anchors (their band fits in a background thread, ``--no-anchor-thread``: on the
-frame itself, the same poses); the tracker's CPU time is then its own thread's.
+``dm+b`` re-anchors (their band fits in a worker process; ``--anchor-worker thread`` or
+``inline``: in a thread, or on the frame itself; the same poses); the tracker's CPU time is
+then its own thread's.
 
 A tracked frame is *within the band* when every DOF's error (against the truth) is at most 3
 std of the full measurement; where the full measurement refused the frame, the std of the
@@ -58,14 +59,14 @@ cv2.setNumThreads(1)
 
 def run(seq: Path, with_full: bool = True, track: TrackParams | None = None,
         method: str = "dm+b", edge_look=None, edge_break_mm: float | None = None,
-        fps: float | None = None, anchor_thread: bool = True) -> list[dict]:
+        fps: float | None = None, anchor_worker: str = "process") -> list[dict]:
     truth = json.loads((seq / "truth.json").read_text())
     camera = camera_from_dict(truth["camera"])
     holder = holder_from_dict(truth["holder"])
     params = approach_params(camera)
     limits = replace(approach_limits(), edge_break_mm=edge_break_mm)
     tracker = Tracker(camera, holder, method, limits=limits, filter=True, track=track,
-                      edge_look=edge_look, anchor_thread=anchor_thread)
+                      edge_look=edge_look, anchor_worker=anchor_worker)
     rows = []
     frames = [load_frame(seq / e["file"]) for e in truth["images"]] if fps else None
     t_start = time.perf_counter()
@@ -245,8 +246,9 @@ def main() -> int:
                     "`cutterpose calibrate-edge-look` (dm+b: tracker and full measurement)")
     ap.add_argument("--fps", type=float, default=None, help="play the frames at this rate "
                     "(a camera's; implies --no-full) and report each frame's latency")
-    ap.add_argument("--no-anchor-thread", action="store_true", help="with anchor_lag > 0: "
-                    "the band fits on the frame they are started on (same poses, no thread)")
+    ap.add_argument("--anchor-worker", default="process", choices=("process", "thread",
+                    "inline"), help="with anchor_lag > 0: where the re-anchors' band fits run "
+                    "(the same poses with each)")
     ap.add_argument("--track", action="append", default=[], metavar="NAME=VALUE",
                     help="a TrackParams field (repeatable), e.g. max_rms_px=0.5")
     a = ap.parse_args()
@@ -266,7 +268,7 @@ def main() -> int:
 
             look = load_edge_look(a.edge_look)
         rows = run(seq, not (a.no_full or a.fps), tp, a.method, look, a.edge_break_mm,
-                   a.fps, not a.no_anchor_thread)
+                   a.fps, a.anchor_worker)
         out = a.out / seq.name
         out.mkdir(parents=True, exist_ok=True)
         keys = list(dict.fromkeys(k for r in rows for k in r))

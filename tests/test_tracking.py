@@ -370,21 +370,24 @@ def test_reanchor_that_disagrees_falls_back(changing_break, monkeypatch):
     assert abs(r.pose.dof[5] - poses[1].dof[5]) < 1.0
 
 
-def test_deferred_reanchor_is_applied_lag_frames_later_thread_or_not(changing_break):
+def test_deferred_reanchor_is_applied_lag_frames_later_by_any_worker(changing_break):
     """``anchor_lag = 2``: the re-anchor due on frame 1 is started there (the frame keeps the
-    full measurement's offsets, as a carried tracker), runs beside frames 2, and is taken up
+    full measurement's offsets, as a carried tracker), runs beside frame 2, and is taken up
     at frame 3, which then follows the changed break again. The same poses with the band fit
-    in a background thread and without it (the frame it applies on is fixed, not the
-    machine's speed)."""
+    in a worker process (the frame through shared memory), a thread, or inline: the frame it
+    applies on is fixed, not the machine's speed."""
     from cutterpose.tracking import TrackParams
 
     cam, hol, poses, frames, params = changing_break
     out = {}
-    for thread in (True, False):
-        with Tracker(cam, hol, method="dm+b", params=params, anchor_thread=thread,
+    for worker in ("process", "thread", "inline"):
+        with Tracker(cam, hol, method="dm+b", params=params, anchor_worker=worker,
                      track=TrackParams(anchor_gain=1.0, anchor_lag=2)) as tracker:
-            out[thread] = [tracker.update(f) for f in frames]
-    res = out[True]
+            out[worker] = [tracker.update(f) for f in frames]
+        assert tracker._executor is None                      # closed by the with block
+    with pytest.raises(InputError):
+        Tracker(cam, hol, anchor_worker="cluster")
+    res = out["process"]
     assert [r.mode for r in res] == ["full", "track", "track", "track"], \
         [(r.mode, r.fallback_reason) for r in res]
     assert res[1].anchor == "re-anchor started (applied at frame 3)"
@@ -392,10 +395,11 @@ def test_deferred_reanchor_is_applied_lag_frames_later_thread_or_not(changing_br
     # frame 3 takes up frame 1's fit, and (warm-up: one attempt so far) starts the next
     assert res[3].anchor.startswith("re-anchored (frame 1); re-anchor started"), res[3].anchor
     assert "anchor_wait" in res[3].timings_ms
-    for a, b in zip(out[True], out[False]):
-        assert a.anchor == b.anchor
-        np.testing.assert_array_equal(a.pose.dof, b.pose.dof)
-        np.testing.assert_array_equal(a.std_dof, b.std_dof)
+    for other in ("thread", "inline"):
+        for a, b in zip(res, out[other]):
+            assert a.anchor == b.anchor
+            np.testing.assert_array_equal(a.pose.dof, b.pose.dof)
+            np.testing.assert_array_equal(a.std_dof, b.std_dof)
     z = [r.pose.dof[5] - p.dof[5] for r, p in zip(res, poses)]
     std_z = [r.std_dof[5] for r in res]
     # frames 1-2 carry the first offsets (the break changed: ~1 mm off), frame 3 does not
@@ -418,7 +422,8 @@ def test_deferred_reanchor_that_disagrees_falls_back_on_take_up(changing_break, 
         return est
 
     monkeypatch.setattr(tracking, "measure_band", shifted)
-    with Tracker(cam, hol, method="dm+b", params=params,
+    # a thread: the patched function is this process's (a worker process imports its own)
+    with Tracker(cam, hol, method="dm+b", params=params, anchor_worker="thread",
                  track=TrackParams(anchor_lag=2)) as tracker:
         res = [tracker.update(f) for f in frames]
         assert [r.mode for r in res] == ["full", "track", "track", "full"], \

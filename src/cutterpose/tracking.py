@@ -77,14 +77,16 @@ length on the holder; then the fitted pose is the design edge's directly.
 * **deferred re-anchors** (``TrackParams.anchor_lag = L > 0``): the band fit takes ~15 tracked
   frames' time, so with ``L = 0`` the frame it is due on waits ~200 ms (two frames of a 10 fps
   camera). With ``L > 0`` that frame is returned at once with the offsets carried, the band
-  fit of its image and tracked pose runs in a background thread (``Tracker(...,
-  anchor_thread=True)``; NumPy and OpenCV release the GIL in their large operations), and
-  its result is taken up at the start of frame ``j + L`` (waiting for it if it is not done):
-  the gate against frame ``j``'s tracked pose, the offsets measured from frame ``j``'s tracked
-  edges at the band's pose, and from frame ``j + L`` on the edges are fitted with them. The
-  frame a result is applied on is fixed, so the poses do not depend on the machine's speed:
-  with the thread or without it (``anchor_thread=False``: the fit is computed on frame ``j``
-  itself) they are the same. A gate failure makes frame ``j + L`` a full measurement with the
+  fit of its image and tracked pose runs beside the tracking (``Tracker(...,
+  anchor_worker=)``: ``"process"``, the default, a worker process that gets the frame through
+  shared memory and runs on another core; ``"thread"``, a background thread, which shares the
+  interpreter lock with the tracking and so overlaps it only where NumPy and OpenCV release
+  it; ``"inline"``, on frame ``j`` itself), and its result is taken up at the start of frame
+  ``j + L`` (waiting for it if it is not done): the gate against frame ``j``'s tracked pose,
+  the offsets measured from frame ``j``'s tracked edges at the band's pose, and from frame
+  ``j + L`` on the edges are fitted with them. The frame a result is applied on is fixed, so
+  the poses do not depend on the machine's speed or on the worker: they are the same with
+  each. A gate failure makes frame ``j + L`` a full measurement with the
   reason; a full measurement in between drops the pending result. ``TrackResult.anchor``
   says "re-anchor started" on frame ``j`` and "re-anchored (frame j)" on frame ``j + L``.
 
@@ -119,7 +121,8 @@ from __future__ import annotations
 
 import math
 import time
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import Future, ProcessPoolExecutor, ThreadPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -188,6 +191,71 @@ def _left(R: np.ndarray, t: np.ndarray, pose: Pose) -> Pose:
     # re-orthonormalise: products of many rotations drift by ~1e-16 per step
     u, _, vt = np.linalg.svd(Rn)
     return Pose(u @ vt, R @ pose.t_mm + t)
+
+
+# ------------------------------------------------------------------------------------------
+# re-anchors beside the tracking
+def band_fit(img: np.ndarray, camera: Camera, holder: Holder, pose: Pose,
+             edges_used: np.ndarray, shapes, passes: int, looks, limits: QualityLimits):
+    """A re-anchor's band fit from a tracked ``pose`` (:func:`measure_band`) and its verdict
+    (``dm+b``'s own, :func:`band_verdict`): ``(estimate, quality, ms)``."""
+    t = time.perf_counter()
+    start = PoseEstimate("track", pose.R, pose.t_mm.copy())
+    est = measure_band(img, camera, holder, start, edges_used, shapes, passes, looks=looks)
+    return est, band_verdict(est, limits), (time.perf_counter() - t) * 1e3
+
+
+def _band_fit_shared(shm_name: str, shape: tuple, *args):
+    """:func:`band_fit` in the worker process, on the frame in shared memory ``shm_name``."""
+    from multiprocessing import shared_memory
+
+    # attached, not owned: the tracker's process unlinks it (a spawned worker shares its
+    # resource tracker, which holds the name once however often it is registered)
+    shm = shared_memory.SharedMemory(name=shm_name)
+    try:
+        img = np.ndarray(shape, np.uint8, buffer=shm.buf)
+        out = band_fit(img, *args)
+        del img
+        return out
+    finally:
+        shm.close()
+
+
+def _warm_worker() -> None:
+    """Import the band fit in the worker before the first re-anchor needs it."""
+    from .solvers import edge_band  # noqa: F401
+
+
+class AnchorProcess:
+    """One worker process for the deferred re-anchors (``anchor_worker="process"``): the frame
+    goes through a shared-memory block of its size (one pending re-anchor at a time, so one
+    block), the rest of the arguments by pickle. A process, not a thread: the band fit is
+    ~200 ms of mostly small NumPy calls that hold the interpreter lock, which a thread would
+    take from the tracking (spawned, not forked: the caller may have threads of its own)."""
+
+    def __init__(self, shape: tuple):
+        import multiprocessing
+        from multiprocessing import shared_memory
+
+        self.shape = tuple(shape)
+        self._shm = shared_memory.SharedMemory(create=True, size=int(np.prod(self.shape)))
+        self._pool = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"))
+        self._pool.submit(_warm_worker)
+
+    def submit(self, img: np.ndarray, *args) -> Future:
+        if img.shape != self.shape or img.dtype != np.uint8:
+            raise InputError(f"frame {img.shape} {img.dtype} is not the {self.shape} uint8 "
+                             "frames of this tracker")
+        np.ndarray(self.shape, np.uint8, buffer=self._shm.buf)[:] = img
+        return self._pool.submit(_band_fit_shared, self._shm.name, self.shape, *args)
+
+    def shutdown(self, wait: bool = True, cancel_futures: bool = False) -> None:
+        self._pool.shutdown(wait=wait, cancel_futures=cancel_futures)
+        self._shm.close()
+        try:
+            self._shm.unlink()
+        except FileNotFoundError:
+            pass
 
 
 # ------------------------------------------------------------------------------------------
@@ -462,9 +530,10 @@ class Tracker:
     edge_look : the edge look calibrated in the cell
         (:func:`cutterpose.calibration.edge_look.load_edge_look`): ``dm+b``'s full measurements
         and re-anchors fit it instead of the generic looks.
-    anchor_thread : with ``TrackParams.anchor_lag > 0``, run the deferred re-anchors' band
-        fits in a background thread (False: on the frame they are measured on; the same
-        poses either way). :meth:`close` (or ``with Tracker(...)``) ends the thread.
+    anchor_worker : with ``TrackParams.anchor_lag > 0``, where the deferred re-anchors' band
+        fits run: ``"process"`` (a worker process, started at the first one), ``"thread"`` or
+        ``"inline"`` (on the frame they are measured on); the same poses with each.
+        :meth:`close` (or ``with Tracker(...)``) ends the worker.
 
     Examples
     --------
@@ -477,10 +546,13 @@ class Tracker:
     def __init__(self, camera: Camera | None = None, holder: Holder | None = None,
                  method: str = "dm+b", params: FeatureParams | None = None,
                  limits: QualityLimits | None = None, track: TrackParams | None = None,
-                 filter: bool = False, edge_look=None, anchor_thread: bool = True):
+                 filter: bool = False, edge_look=None, anchor_worker: str = "process"):
+        if anchor_worker not in ("process", "thread", "inline"):
+            raise InputError(f"anchor_worker must be process, thread or inline, got "
+                             f"{anchor_worker!r}")
         self.camera = camera or default_camera("table1")
-        self.anchor_thread = anchor_thread
-        self._executor: ThreadPoolExecutor | None = None
+        self.anchor_worker = anchor_worker
+        self._executor: ThreadPoolExecutor | AnchorProcess | None = None
         self.edge_look = edge_look
         self.holder = holder or default_holder()
         self.method = method
@@ -496,6 +568,11 @@ class Tracker:
         self.filter = PoseFilter(self.tp.filter_alpha, self.tp.filter_beta, self.tp.gate_mm,
                                  self.tp.gate_deg) if filter else None
         self.reset()
+        if anchor_worker == "process" and self.tp.anchor_lag > 0 and method == "dm+b":
+            # started now: the spawn and its imports (~1 s) run beside the first frame's full
+            # measurement instead of delaying the first re-anchor
+            w, h = self.camera.image_size_px
+            self._executor = AnchorProcess((h, w))
 
     def reset(self) -> None:
         """Forget the past: the next frame is measured in full."""
@@ -523,8 +600,8 @@ class Tracker:
     def close(self) -> None:
         """End the background thread of deferred re-anchors (if one was started)."""
         if self._executor is not None:
-            self._executor.shutdown(wait=True, cancel_futures=True)
-            self._executor = None
+            ex, self._executor = self._executor, None
+            ex.shutdown(wait=True, cancel_futures=True)
 
     def __enter__(self) -> Tracker:
         return self
@@ -687,15 +764,15 @@ class Tracker:
         self._anchor_std = np.where(np.isfinite(std_dof), std_dof, 0.0)
         self._anchors += 1
 
+    def _band_args(self, pose: Pose, edges_used: np.ndarray) -> tuple:
+        """The arguments of :func:`band_fit` after the image (all picklable)."""
+        return (self.camera, self.holder, pose, edges_used,
+                EDGE_SHAPE_FITS[self.limits.edge_shape], self.tp.anchor_passes,
+                as_band_looks(self.edge_look), self.limits)
+
     def _band_fit(self, img: np.ndarray, pose: Pose, edges_used: np.ndarray):
-        """The re-anchor's band fit from a tracked pose and its verdict (``dm+b``'s own):
-        ``(estimate, quality, ms)``. Reads nothing the tracker changes (background thread)."""
-        t = time.perf_counter()
-        start = PoseEstimate("track", pose.R, pose.t_mm.copy())
-        est = measure_band(img, self.camera, self.holder, start, edges_used,
-                           EDGE_SHAPE_FITS[self.limits.edge_shape], self.tp.anchor_passes,
-                           looks=as_band_looks(self.edge_look))
-        return est, band_verdict(est, self.limits), (time.perf_counter() - t) * 1e3
+        """The re-anchor's band fit here (:func:`band_fit`)."""
+        return band_fit(img, *self._band_args(pose, edges_used))
 
     def _apply_band(self, est, q, frame: int, pose: Pose, std_dof: np.ndarray,
                     lines: np.ndarray, edges_used: np.ndarray) -> tuple[str, str]:
@@ -758,7 +835,13 @@ class Tracker:
         self._anchor_t_mm, self._anchor_frame = res.pose.t_mm.copy(), res.frame
         self._attempts += 1
         used = res.edges_used.copy()
-        if self.anchor_thread:
+        if self.anchor_worker == "process":
+            if self._executor is not None and self._executor.shape != img.shape:
+                self.close()     # frames of another size than the camera's (a test's crop)
+            if self._executor is None:
+                self._executor = AnchorProcess(img.shape)
+            fut = self._executor.submit(img, *self._band_args(res.pose, used))
+        elif self.anchor_worker == "thread":
             if self._executor is None:
                 self._executor = ThreadPoolExecutor(1, thread_name_prefix="cutterpose-anchor")
             # the caller may reuse its frame buffer (a camera driver's): the thread reads a copy
@@ -788,6 +871,9 @@ class Tracker:
             est, q, fit_ms = fut.result()
         except CutterposeError as e:
             return f"re-anchor (frame {j}): {type(e).__name__}: {e}", ""
+        except BrokenProcessPool as e:   # the worker died: a new one at the next re-anchor
+            self.close()
+            return f"re-anchor (frame {j}): the band fit's worker process failed ({e})", ""
         finally:
             timings["anchor_wait"] = (time.perf_counter() - t) * 1e3
         timings["anchor_fit"] = fit_ms
