@@ -106,6 +106,17 @@ def test_batched_tukey_lines_equal_one_line_at_a_time():
         assert np.allclose(w[k], w1, atol=1e-9)
 
 
+def test_seeded_pairs_are_the_seeded_generators_first_draws():
+    """LMedS's hypotheses: the cached, restored generator draws what a fresh
+    ``default_rng(seed)`` draws, every time and in any order of seeds."""
+    from cutterpose.image.edges import _seeded_pairs
+
+    for seed, n, h in [(0, 900, 64), (7, 5, 64), (3, 10 ** 6, 16), (0, 900, 64), (7, 6, 64)]:
+        rng = np.random.default_rng(seed)
+        ref = np.stack([rng.integers(0, n, h), rng.integers(0, n, h)])
+        np.testing.assert_array_equal(_seeded_pairs(seed, n, h), ref)
+
+
 def test_group_and_row_medians_equal_numpy():
     rng = np.random.default_rng(2)
     v = rng.normal(size=1001).astype(np.float32)

@@ -15,6 +15,7 @@ Convention:
 
 from __future__ import annotations
 
+import threading
 from typing import TYPE_CHECKING
 
 import cv2
@@ -388,6 +389,27 @@ def group_median(values: np.ndarray, groups: np.ndarray, n_groups: int) -> np.nd
     return med
 
 
+_GENERATORS = threading.local()
+
+
+def _seeded_pairs(seed: int, n: int, hypotheses: int) -> np.ndarray:
+    """(2, hypotheses) point indices below ``n``: what ``np.random.default_rng(seed)`` draws
+    first, as two ``integers(0, n, hypotheses)`` calls. The seeded generator's state is kept
+    per seed (per thread) and restored: seeding costs twice the draws (issue 13)."""
+    cache = getattr(_GENERATORS, "by_seed", None)
+    if cache is None:
+        cache = _GENERATORS.by_seed = {}
+    hit = cache.get(seed)
+    if hit is None:
+        if len(cache) >= 256:   # callers use a few seeds (the edges' indices); stay small
+            cache.clear()
+        rng = np.random.default_rng(seed)
+        hit = cache[seed] = (rng, rng.bit_generator.state)
+    rng, state = hit
+    rng.bit_generator.state = state
+    return rng.integers(0, n, (2, hypotheses))
+
+
 def lmeds_line(p: np.ndarray, hypotheses: int = 64, prior: np.ndarray | None = None,
                seed: int = 0, gate_points: np.ndarray | None = None, gate_px: float = np.inf,
                subsample: int = 256, top: int = 4):
@@ -417,13 +439,10 @@ def lmeds_lines(points: list, hypotheses: int = 64, priors=None, seeds=None,
     first = np.cumsum(counts) - counts
     P = np.concatenate([np.asarray(p, float).reshape(-1, 2) for p in points])
     seeds = range(E) if seeds is None else seeds
-    draws = []
-    for e, seed in enumerate(seeds):
-        rng = np.random.default_rng(seed)
-        draws.append((rng.integers(0, counts[e], hypotheses) + first[e],
-                      rng.integers(0, counts[e], hypotheses) + first[e]))
-    i = np.concatenate([a for a, _ in draws])
-    j = np.concatenate([b for _, b in draws])
+    draws = [_seeded_pairs(seed, counts[e], hypotheses) + first[e]
+             for e, seed in enumerate(seeds)]
+    i = np.concatenate([d[0] for d in draws])
+    j = np.concatenate([d[1] for d in draws])
     lab = np.repeat(np.arange(E), hypotheses)
     keep = i != j
     a, b, lab = P[i[keep]], P[j[keep]], lab[keep]
