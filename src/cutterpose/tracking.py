@@ -121,6 +121,7 @@ from __future__ import annotations
 
 import math
 import time
+import weakref
 from concurrent.futures import Future, ProcessPoolExecutor, ThreadPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field, replace
@@ -231,7 +232,10 @@ class AnchorProcess:
     goes through a shared-memory block of its size (one pending re-anchor at a time, so one
     block), the rest of the arguments by pickle. A process, not a thread: the band fit is
     ~200 ms of mostly small NumPy calls that hold the interpreter lock, which a thread would
-    take from the tracking (spawned, not forked: the caller may have threads of its own)."""
+    take from the tracking (spawned, not forked: the caller may have threads of its own; as
+    for any spawned process, a script's main module must be importable, i.e. not read from
+    standard input: else the worker fails, and each re-anchor falls back to a full
+    measurement with that reason)."""
 
     def __init__(self, shape: tuple):
         import multiprocessing
@@ -241,6 +245,8 @@ class AnchorProcess:
         self._shm = shared_memory.SharedMemory(create=True, size=int(np.prod(self.shape)))
         self._pool = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"))
         self._pool.submit(_warm_worker)
+        # a tracker dropped without close(): the worker and the block go with it
+        self._finalizer = weakref.finalize(self, _release_worker, self._pool, self._shm)
 
     def submit(self, img: np.ndarray, *args) -> Future:
         if img.shape != self.shape or img.dtype != np.uint8:
@@ -250,12 +256,17 @@ class AnchorProcess:
         return self._pool.submit(_band_fit_shared, self._shm.name, self.shape, *args)
 
     def shutdown(self, wait: bool = True, cancel_futures: bool = False) -> None:
-        self._pool.shutdown(wait=wait, cancel_futures=cancel_futures)
-        self._shm.close()
-        try:
-            self._shm.unlink()
-        except FileNotFoundError:
-            pass
+        self._finalizer.detach()
+        _release_worker(self._pool, self._shm, wait, cancel_futures)
+
+
+def _release_worker(pool, shm, wait: bool = False, cancel_futures: bool = True) -> None:
+    pool.shutdown(wait=wait, cancel_futures=cancel_futures)
+    shm.close()
+    try:
+        shm.unlink()
+    except FileNotFoundError:
+        pass
 
 
 # ------------------------------------------------------------------------------------------
@@ -531,7 +542,7 @@ class Tracker:
         (:func:`cutterpose.calibration.edge_look.load_edge_look`): ``dm+b``'s full measurements
         and re-anchors fit it instead of the generic looks.
     anchor_worker : with ``TrackParams.anchor_lag > 0``, where the deferred re-anchors' band
-        fits run: ``"process"`` (a worker process, started at the first one), ``"thread"`` or
+        fits run: ``"process"`` (a worker process, started with the tracker), ``"thread"`` or
         ``"inline"`` (on the frame they are measured on); the same poses with each.
         :meth:`close` (or ``with Tracker(...)``) ends the worker.
 
@@ -598,7 +609,7 @@ class Tracker:
             self.filter.reset()
 
     def close(self) -> None:
-        """End the background thread of deferred re-anchors (if one was started)."""
+        """End the deferred re-anchors' worker (process or thread), if one was started."""
         if self._executor is not None:
             ex, self._executor = self._executor, None
             ex.shutdown(wait=True, cancel_futures=True)
