@@ -1,7 +1,10 @@
 """Speed benchmark: median time per solve of every method, as a ratio to OpenCV's SQPnP measured
 in the same run, and the time of `measure` on a full 4112 x 3008 image (from memory and from
 its PNG file), per stage, as ratios to a naive OpenCV chain and to SQPnP timed in the same run
-(issue 13: <= 50 ms from memory, <= 130 ms with the PNG decode, one core).
+(issue 13: <= 50 ms from memory, <= 130 ms with the PNG decode, one core), and tracking: a
+rendered 20-frame approach (analytic ``field`` preset, 900 -> 600 mm) tracked frame by frame,
+the tracked frames' CPU time as a ratio to the full measurement of the same frames (issue 13:
+<= 15 ms a tracked frame).
 
 Runs on one core (BLAS and OpenCV threads pinned to 1), so the figures compare with the issues'
 single-core targets. Usage: ``make bench`` or ``python benchmarks/bench.py [--trials N]
@@ -295,11 +298,60 @@ def bench_measure(repeats: int = 7, image_sets: tuple = (), per_set: int = 20,
                       scam, holder, imgs, paths, repeats, sqpnp, method, look)
 
 
+def bench_track(n_frames: int = 20, methods=("dm+b", "dm+")) -> None:
+    """Tracking an approach rendered in memory (analytic ``field`` preset, the real camera,
+    900 -> 600 mm in ``n_frames``; its sharp edge declared for ``dm+``): per method, the
+    tracked frames' CPU time (median, and of the frames without a re-anchor) and the full
+    measurement's on the same frames, in one thread."""
+    from dataclasses import replace
+
+    from cutterpose.geometry.camera import default_camera
+    from cutterpose.pipeline import measure
+    from cutterpose.render.analytic import auto_exposed, preset, render_holder
+    from cutterpose.render.sequence import approach_poses
+    from cutterpose.tracking import Tracker, approach_limits, approach_params
+
+    cam, holder = default_camera("table1"), default_holder()
+    poses, _ = approach_poses(n_frames)
+    base = preset("field")
+    frames = [render_holder(p, cam, holder, base.with_(light_dn=auto_exposed(base.light_dn, p)),
+                            seed=0, noise_seed=k).image for k, p in enumerate(poses)]
+    print(f"\n[track] a {n_frames}-frame approach (analytic field preset, 900 -> 600 mm), one "
+          "thread, CPU time")
+    for method in methods:
+        limits = replace(approach_limits(), edge_break_mm=0.0 if method == "dm+" else None)
+        params = approach_params(cam)
+        tracker = Tracker(cam, holder, method, limits=limits)
+        tracked, plain, full = [], [], []
+        for f in frames:
+            c = time.process_time()
+            r = tracker.update(f)
+            ms = (time.process_time() - c) * 1e3
+            if r.mode == "track":
+                tracked.append(ms)
+                if not r.anchor:
+                    plain.append(ms)
+            c = time.process_time()
+            measure(f, cam, holder, method, params, limits)
+            full.append((time.process_time() - c) * 1e3)
+        tracker.close()
+        if not tracked:
+            print(f"  {method}: no frame tracked")
+            continue
+        med, fm = float(np.median(tracked)), float(np.median(full))
+        print(f"  {method}: {len(tracked)} of {n_frames} frames tracked, {med:.1f} ms median "
+              f"({np.median(plain) if plain else np.nan:.1f} ms without a re-anchor, "
+              f"{len(tracked) - len(plain)} re-anchored); full measurement {fm:.1f} ms; "
+              f"ratio {med / fm:.3f} (target 15 ms)")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--trials", type=int, default=200)
     ap.add_argument("--skip-measure", action="store_true")
     ap.add_argument("--skip-solvers", action="store_true")
+    ap.add_argument("--skip-track", action="store_true")
+    ap.add_argument("--track-frames", type=int, default=20)
     ap.add_argument("--images", action="append", default=[],
                     help="an image set (folder with truth.json) to time measure on; repeatable")
     ap.add_argument("--per-set", type=int, default=20, help="images per set")
@@ -324,6 +376,8 @@ def main() -> None:
         bench_measure(image_sets=tuple(a.images), per_set=a.per_set,
                       field_images=a.field_images, methods=tuple(a.methods.split(",")),
                       edge_look=look)
+    if not a.skip_track:
+        bench_track(a.track_frames)
     peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     print(f"\npeak resident memory of this run: {peak_mb:.0f} MB")
 
