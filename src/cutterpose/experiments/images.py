@@ -39,7 +39,7 @@ from ..pipeline import QualityLimits, measure_features
 from .report import (
     BUDGET_STD_COLUMNS,
     ERR_COLUMNS,
-    _fmt,
+    csv_cell,
     summarize,
     trial_rows,
     write_summary,
@@ -136,7 +136,7 @@ def _budget_cells(budget, row: dict) -> list[str]:
         except np.linalg.LinAlgError:
             pass
     return ([f"{budget.position_3sigma_mm:.4f}", f"{budget.angle_3sigma_deg:.4f}"]
-            + [_fmt(float(v)) for v in budget.std_dof] + [_fmt(d2)])
+            + [csv_cell(float(v)) for v in budget.std_dof] + [csv_cell(d2)])
 
 
 def run_images(folder, methods: list[str], out, workers: int = 1, params=None,

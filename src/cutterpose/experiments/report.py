@@ -56,7 +56,9 @@ def trial_rows(trial, sigma_px, method: str, R_true, t_true_mm, R_est, t_est_mm,
     return rows
 
 
-def _fmt(v) -> str:
+def csv_cell(v) -> str:
+    """One CSV cell: text as is, integers plainly, other numbers to 9 digits, NaN / None
+    empty."""
     if isinstance(v, str):
         return v
     if isinstance(v, (int, np.integer)):
@@ -72,7 +74,7 @@ def write_trials_csv(rows: Iterable[dict], path) -> None:
         w = csv.writer(fh)
         w.writerow(TRIAL_COLUMNS)
         for r in rows:
-            w.writerow([_fmt(r[c]) for c in TRIAL_COLUMNS])
+            w.writerow([csv_cell(r[c]) for c in TRIAL_COLUMNS])
 
 
 def read_trials_csv(path) -> list[dict]:

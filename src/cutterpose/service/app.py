@@ -35,7 +35,7 @@ from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from pydantic import ValidationError
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
-from ..errors import CutterposeError
+from ..errors import CutterposeError, ImageError
 from .config import Cell
 from .jobs import (
     FORMATS,
@@ -50,6 +50,7 @@ from .metrics import CONTENT_TYPE_LATEST, Metrics, MetricsMiddleware
 from .models import (
     ErrorBody,
     Health,
+    ImageQuery,
     MeasureJSON,
     MeasurementList,
     MeasurementRecord,
@@ -57,7 +58,6 @@ from .models import (
     Ready,
     TrackCreate,
     TrackFrameOut,
-    TrackFrameQuery,
     TrackInfo,
     parse_flange_pose,
 )
@@ -298,6 +298,20 @@ def create_app(cell: Cell, pool: WorkerPool | None = None) -> FastAPI:
         else:
             data, fmt = body, FORMATS[ctype]
             w, h, pose, rid, holder = q.width, q.height, q.flange_pose, q.request_id, q.holder
+        check_holder(holder)
+        row = image_params(fmt, w, h, pose)
+        check_body(data, fmt)
+        return data, fmt, (w, h) if fmt == "raw" else None, row, rid, holder or \
+            cell.default_holder
+
+    def check_holder(holder: str | None) -> None:
+        if holder is not None and holder not in cell.holders:
+            raise ApiError(422, "validation_error", f"holder {holder!r} is not in the cell "
+                           f"file ({', '.join(sorted(cell.holders))})")
+
+    def image_params(fmt: str, w, h, pose):
+        """The checks of an image request's parameters (a raw body's size, the flange pose):
+        the flange pose row, or None."""
         if fmt == "raw":
             if w is None or h is None:
                 raise ApiError(422, "validation_error", "raw 8-bit images need width and "
@@ -305,20 +319,18 @@ def create_app(cell: Cell, pool: WorkerPool | None = None) -> FastAPI:
         elif w is not None or h is not None:
             raise ApiError(422, "validation_error", "width and height are for raw images only "
                            f"(a {fmt.upper()} file has its own)")
-        if holder is not None and holder not in cell.holders:
-            raise ApiError(422, "validation_error", f"holder {holder!r} is not in the cell "
-                           f"file ({', '.join(sorted(cell.holders))})")
         try:
-            row = parse_flange_pose(pose) if pose is not None else None
+            return parse_flange_pose(pose) if pose is not None else None
         except ValueError as e:
             raise ApiError(422, "bad_flange_pose", str(e)) from None
+
+    def check_body(data: bytes, fmt: str) -> None:
+        """An encoded body's format and truncation (before any work is queued)."""
         if fmt != "raw":
             try:
                 check_encoded(data, fmt)
-            except Exception as e:  # ImageError: the message says what is wrong
+            except ImageError as e:
                 raise ApiError(422, "image_unusable", str(e)) from None
-        return data, fmt, (w, h) if fmt == "raw" else None, row, rid, holder or \
-            cell.default_holder
 
     # -- measurements --------------------------------------------------------------------
     @app.post("/v1/measurements", response_model=MeasurementRecord, dependencies=auth,
@@ -512,9 +524,7 @@ def create_app(cell: Cell, pool: WorkerPool | None = None) -> FastAPI:
     async def create_track(body: TrackCreate, tracks: TracksDep):
         """Open a tracking session for one approach: send its frames in order to
         ``/v1/tracks/{id}/frames``; the first is measured in full."""
-        if body.holder is not None and body.holder not in cell.holders:
-            raise ApiError(422, "validation_error", f"holder {body.holder!r} is not in the "
-                           f"cell file ({', '.join(sorted(cell.holders))})")
+        check_holder(body.holder)
         try:
             s = await asyncio.to_thread(tracks.create, body.holder, body.filter,
                                         body.anchor_lag)
@@ -533,7 +543,7 @@ def create_app(cell: Cell, pool: WorkerPool | None = None) -> FastAPI:
                 responses=_responses(401, 404, 422), response_class=Response,
                 tags=["tracking"])
     async def delete_track(track_id: TrackId, tracks: TracksDep):
-        """Close a session (its tracker and its background thread)."""
+        """Close a session (its tracker and the tracker's re-anchor worker, if any)."""
         s = session_of(tracks, track_id)
         async with s.lock:    # after a frame being tracked
             await asyncio.to_thread(tracks.close, track_id)
@@ -547,7 +557,7 @@ def create_app(cell: Cell, pool: WorkerPool | None = None) -> FastAPI:
                               if k != "application/json"}}},
               tags=["tracking"])
     async def post_frame(request: Request, track_id: TrackId,
-                         q: Annotated[TrackFrameQuery, Query()], tracks: TracksDep):
+                         q: Annotated[ImageQuery, Query()], tracks: TracksDep):
         """The next frame of the session: its pose from the previous ones (or a full
         measurement, with the reason). Not stored."""
         t0 = time.perf_counter()
@@ -559,22 +569,14 @@ def create_app(cell: Cell, pool: WorkerPool | None = None) -> FastAPI:
                            "image/png, image/tiff, image/jpeg or application/octet-stream "
                            "(raw 8-bit, with width and height)")
         fmt = FORMATS[ctype]
-        if fmt == "raw" and (q.width is None or q.height is None):
-            raise ApiError(422, "validation_error", "raw 8-bit frames need width and height")
-        if fmt != "raw" and (q.width is not None or q.height is not None):
-            raise ApiError(422, "validation_error", "width and height are for raw frames only")
-        try:
-            row = parse_flange_pose(q.flange_pose) if q.flange_pose is not None else None
-        except ValueError as e:
-            raise ApiError(422, "bad_flange_pose", str(e)) from None
+        row = image_params(fmt, q.width, q.height, q.flange_pose)
         data = await read_body(request)
+        check_body(data, fmt)
+        t1 = time.perf_counter()
         try:
-            if fmt != "raw":
-                check_encoded(data, fmt)
-            t1 = time.perf_counter()
             img = await asyncio.to_thread(decode_image, data, fmt, (q.width, q.height),
                                           tuple(cell.camera.image_size_px))
-        except Exception as e:  # ImageError: the message says what is wrong
+        except ImageError as e:
             raise ApiError(422, "image_unusable", str(e)) from None
         t2 = time.perf_counter()
         async with s.lock:

@@ -19,7 +19,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 __all__ = ["ErrorBody", "MeasureQuery", "MeasureJSON", "MeasurementRecord", "MeasurementList",
            "Ready", "Health", "parse_flange_pose", "FLANGE_POSE_DOC", "REQUEST_ID_PATTERN",
-           "TrackCreate", "TrackInfo", "TrackFrameQuery", "TrackFrameOut"]
+           "ImageQuery", "TrackCreate", "TrackInfo", "TrackFrameOut"]
 
 REQUEST_ID_PATTERN = r"^[A-Za-z0-9._:-]{1,128}$"
 FLANGE_POSE_DOC = ("The robot's flange pose T_base_flange when the picture was taken, as the "
@@ -79,19 +79,25 @@ class ErrorBody(_Model):
     detail: list | None = Field(None, description="Per-field errors of a validation_error.")
 
 
-class MeasureQuery(_Model):
-    """Query parameters of ``POST /v1/measurements`` with an image body."""
+class ImageQuery(_Model):
+    """Query parameters of every request with an image body: the flange pose at the picture
+    and a raw body's size."""
 
     flange_pose: str | None = Field(None, description=FLANGE_POSE_DOC,
                                     examples=["850.0,-120.5,1430.2,0,0,0.7071068,0.7071068"])
-    request_id: str | None = Field(None, pattern=REQUEST_ID_PATTERN, description=(
-        "The client's id of this request (1..128 of A-Z a-z 0-9 . _ : -). A request repeated "
-        "with the same id gets the first answer (same measurement id) without measuring again; "
-        "the same id with a different image, flange pose or holder gets 409."))
     width: int | None = Field(None, ge=1, le=65535, description="Raw bodies only: image width "
                               "[px].")
     height: int | None = Field(None, ge=1, le=65535, description="Raw bodies only: image "
                                "height [px].")
+
+
+class MeasureQuery(ImageQuery):
+    """Query parameters of ``POST /v1/measurements`` with an image body."""
+
+    request_id: str | None = Field(None, pattern=REQUEST_ID_PATTERN, description=(
+        "The client's id of this request (1..128 of A-Z a-z 0-9 . _ : -). A request repeated "
+        "with the same id gets the first answer (same measurement id) without measuring again; "
+        "the same id with a different image, flange pose or holder gets 409."))
     holder: str | None = Field(None, max_length=64, description="Holder model name from the "
                                "cell file (default: the cell's default_holder).")
 
@@ -257,16 +263,6 @@ class TrackInfo(_Model):
                                   "without a frame.")
     filter: bool
     anchor_lag: int
-
-
-class TrackFrameQuery(_Model):
-    """Query parameters of ``POST /v1/tracks/{id}/frames`` with an image body."""
-
-    flange_pose: str | None = Field(None, description=FLANGE_POSE_DOC)
-    width: int | None = Field(None, ge=1, le=65535, description="Raw bodies only: image width "
-                              "[px].")
-    height: int | None = Field(None, ge=1, le=65535, description="Raw bodies only: image "
-                               "height [px].")
 
 
 class TrackFrameOut(_Open):
