@@ -192,6 +192,12 @@ def summary(name: str, rows: list[dict], truth: dict) -> None:
         print(f"  tracked frames within 3 std of the full measurement: {inb}/{len(tr)} "
               f"(band from the frame's own full measurement on {own}, the nearest accepted "
               f"one on the rest); largest |err|/std {np.nanmax(zs):.2f}")
+        # and in the tracked pose's own std (the fit's and its anchor's, TrackResult.std_dof):
+        # is the figure the robot gets with each tracked pose honest?
+        own_z = np.array([max(abs(r[f"err_{n}"]) / r[f"std_{n}"] for n in DOF_NAMES)
+                          for r in tr])
+        print(f"  tracked frames within 3 of their own std: {int(np.sum(own_z <= 3.0))}/"
+              f"{len(tr)}; largest |err|/std {np.nanmax(own_z):.2f}")
         dev = [r["max_dev_z"] for r in tr if "max_dev_z" in r]
         if dev:
             print(f"  |tracked - full pose| / std of the full measurement, same frame: median "

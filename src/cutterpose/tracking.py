@@ -72,6 +72,21 @@ length on the holder; then the fitted pose is the design edge's directly.
   wrong, and the frame falls back to the full measurement with the reason; a band fit that its
   verdict refuses leaves the offsets as they were (``TrackResult.anchor`` says so) and is
   tried again after the same change of view;
+* **the view between anchors** (``TrackParams.view_model``): on a rounded edge the innermost
+  rise lies where the fillet's shading turns, and that place moves with the viewing
+  direction: on a path-traced worn approach the offsets measured at the true pose fell by
+  ~0.4 mm from 890 to 600 mm, which, carried as lengths, read as a depth error growing
+  between anchors (docs/RESULTS.md sections 13 and 14). The edge model
+  (:mod:`cutterpose.image.edge_model`: its innermost rise, nominal look, the band fit's median
+  radius and edge shape) predicts that change. At an anchor the tracker keeps the part of
+  each end's offset the model does not explain and the model's slope along the line of sight
+  (the camera ``VIEW_STEP`` closer); on each frame it adds the model's offsets at the frame's
+  distance (linear, up to ``VIEW_REACH`` from the anchor's; the model evaluated at each
+  frame's own pose would add that pose's rotation noise to the offsets);
+* **edges without an offset**: an edge that no anchor has measured (hidden then, by slurry,
+  the cutter or a chip) carries the others' median offset, millimetres off on a worn holder.
+  Its position counts as far as the measured offsets agree, its direction in full
+  (:meth:`Tracker._weigh_unmeasured`), and the next anchor measures it;
 * **std**: a tracked pose inherits the error of the pose its offsets were measured at, so its
   std is the fit's and the last anchor's ``dm+b`` std in quadrature.
 * **deferred re-anchors** (``TrackParams.anchor_lag = L > 0``): the band fit takes ~15 tracked
@@ -136,6 +151,7 @@ from .geometry.camera import Camera, default_camera
 from .geometry.holder import Holder, default_holder, outward_edge_normals
 from .geometry.pose import Pose, pixel_jacobian, wrap_deg
 from .image import FeatureParams, as_grey_u8
+from .image import edge_model as em
 from .image.edges import intersect_consecutive, robust_edge_lines
 from .methods import get_method
 from .pipeline import (
@@ -316,6 +332,15 @@ def offset_edge_ends_mm(corners_mm: np.ndarray, offset_mm: np.ndarray) -> np.nda
     return np.column_stack([e, np.zeros(len(e))])
 
 
+#: the view model's step along the line of sight for its slope, and how far from the anchor's
+#: distance (relative) it is followed linearly (beyond, the offsets stay as there)
+VIEW_STEP = 0.05
+VIEW_REACH = 0.15
+#: the scale (px) of a tracked edge's distance from the model, against which an unmeasured
+#: edge's offset prior is weighed (the tracked frames' RMS is 0.3-0.6 px on broken edges)
+LINE_SCALE_PX = 0.3
+
+
 # ------------------------------------------------------------------------------------------
 @dataclass(frozen=True)
 class TrackParams:
@@ -382,6 +407,10 @@ class TrackParams:
     #: this many frames after the frame it was measured on (module doc, "Deferred
     #: re-anchors"); 0: on that frame itself, which then waits for the fit
     anchor_lag: int = 0
+    #: ``dm+b``: the offsets follow the view between anchors as the edge model says a broken
+    #: edge of the band fit's radius images (module doc, "Broken edges"); False: a length on
+    #: the holder, constant until the next anchor
+    view_model: bool = True
 
     def for_camera(self, camera: Camera) -> TrackParams:
         k = camera.focal_px / (0.00854103 / 3.45e-6)
@@ -460,6 +489,11 @@ class TrackResult:
     #: rests on (after the outliers were left out)
     lines_ideal: np.ndarray | None = field(default=None, repr=False)
     edges_used: np.ndarray | None = field(default=None, repr=False)
+    #: tracking: every edge line found (before the outlier test) and which edges they are:
+    #: an anchor measures the offsets of the edges used and of those found whose offset no
+    #: anchor has measured yet
+    lines_found: np.ndarray | None = field(default=None, repr=False)
+    edges_found: np.ndarray | None = field(default=None, repr=False)
 
     def to_dict(self) -> dict:
         """One JSON object of ``cutterpose track --json-lines``."""
@@ -590,9 +624,20 @@ class Tracker:
         # the model the tracked edges are fitted with: the design corners, or (dm+b, dm+r)
         # the design contour moved by the offsets of the edges tracked from the design edge
         self._offset_mm: np.ndarray | None = None
+        self._measured: np.ndarray | None = None   # (N,) edges an anchor has measured
+        self._offset_spread_mm = 0.0   # the measured edges' offsets' spread about the median
         self._model_mm = self.holder.points_holder_mm
         # the ends of every model edge (2N, 3): P_k, then P_k+1, fitted to the tracked lines
         self._ends_mm = np.concatenate([self._model_mm, np.roll(self._model_mm, -1, axis=0)])
+        # the offsets' view-dependent part (dm+b, ``view_model``): the edge model's offset of
+        # the innermost rise at each edge end (N, 2) in the current view, for the band fit's
+        # radius at each end and its edge shape (None: no model, offsets are lengths)
+        self._view_radius_mm: np.ndarray | None = None
+        self._view_look = None
+        self._delta_mm = np.zeros((len(self.holder.corners_mm), 2))
+        #: the view model linearised at the last anchor along the line of sight: (distance
+        #: |t| there, the offsets there, their change per relative change of distance)
+        self._view_ref: tuple | None = None
         self._anchor_t_mm: np.ndarray | None = None   # where the offsets were measured
         self._anchor_frame = -1
         self._anchor_std = np.zeros(6)   # std of the pose the offsets were measured at
@@ -706,13 +751,14 @@ class Tracker:
         When those edges fail tracking's checks, the previous offsets (or none) are kept and
         the next tracked frame measures them again."""
         self._last, self._prev = m.pose, None
+        self._set_view_model(m.edge_band)
         try:
             res = self._track(img, k, {})
         except CutterposeError:
             res = None
         self._anchors = self._attempts = 0
         if isinstance(res, TrackResult):
-            self._set_offsets(m.pose, res.lines_ideal, res.edges_used, m.std_dof, k, 1.0)
+            self._set_offsets(m.pose, *self._anchor_lines(res), m.std_dof, k, 1.0)
         else:
             self._anchor_t_mm = None
 
@@ -728,8 +774,63 @@ class Tracker:
         return (abs(scale - 1.0) > tp.anchor_scale_change
                 or (tp.anchor_every > 0 and k - self._anchor_frame >= tp.anchor_every))
 
+    def _set_view_model(self, band) -> None:
+        """The edge model the offsets follow the view with (``view_model``), from a band fit
+        (:class:`~cutterpose.solvers.edge_band.BandPose`; None keeps the last): the fit's
+        median radius over its segments at every edge end and its edge shape, with the nominal
+        photometry (the shipped offset grid's). One radius, not each edge's: an edge's own
+        radius rests on its four segments, and a wrong one (an edge under slurry) gave its
+        ends slopes of 0.5 mm per relative change of distance where the others had 0.1 (the
+        analytic ``field`` approach); the common trend, a depth error, is the part that
+        matters (docs/RESULTS.md section 14)."""
+        if not self.tp.view_model or band is None:
+            return
+        r = band.fit.radius_median_mm
+        if not np.isfinite(r):
+            return
+        self._view_radius_mm = np.full((len(self.holder.corners_mm), 2), float(r))
+        self._view_look = em.EdgeLook(shape=band.fit.best.look.shape)
+
+    def _view_delta(self, pose: Pose) -> np.ndarray | None:
+        """The edge model's outward offsets (N, 2; mm in the face plane) of the innermost rise
+        at every edge end seen with ``pose``; zeros without a model, None where the view lies
+        outside the shipped offset grid (the caller keeps the last)."""
+        if self._view_radius_mm is None:
+            return np.zeros_like(self._delta_mm)
+        view = em.edge_views(pose.R, pose.t_mm, self.K, self.holder, self._view_look)
+        w = em.tabulated_w_px(self._view_radius_mm[..., None], view, self._view_look)
+        if w is None or not np.all(np.isfinite(w)):
+            return None
+        return w[..., 0] / view.a_s
+
+    def _follow_view(self, pose: Pose) -> None:
+        """The moved model at ``pose``'s distance: the view model linearised at the last
+        anchor (``_view_ref``), followed up to ``VIEW_REACH`` of its distance."""
+        if self._view_ref is None or self._offset_mm is None:
+            return
+        s_a, d_a, g = self._view_ref
+        u = float(np.clip(np.linalg.norm(pose.t_mm) / s_a - 1.0, -VIEW_REACH, VIEW_REACH))
+        self._set_model(d_a + g * u)
+
+    def _set_model(self, delta_mm: np.ndarray | None) -> None:
+        """The moved model (``_model_mm``, ``_ends_mm``) from the carried offsets and the
+        view's part ``delta_mm`` (None: the last view's)."""
+        if delta_mm is not None:
+            self._delta_mm = delta_mm
+        if self._offset_mm is None:
+            return
+        c = np.asarray(self.holder.corners_mm, float)
+        # corner i's ends: (i, 0) of edge i - 1, (i, 1) of edge i -> per edge (start, end)
+        dv = np.column_stack([self._delta_mm[:, 1], np.roll(self._delta_mm[:, 0], -1)])
+        off = self._offset_mm + dv
+        self._model_mm = offset_polygon_mm(c, off)
+        # one offset per edge: the moved polygon's corners are its edges' ends (as before the
+        # ends had offsets of their own)
+        self._ends_mm = offset_edge_ends_mm(c, off) if self.tp.anchor_ends else \
+            np.concatenate([self._model_mm, np.roll(self._model_mm, -1, axis=0)])
+
     def _set_offsets(self, pose: Pose, lines: np.ndarray, seen: np.ndarray, std_dof,
-                     k: int, gain: float) -> None:
+                     k: int, gain: float, band=None) -> None:
         """Each seen edge's offsets (mm, face plane, outward normal) from the design edge: the
         shift of each end of design edge ``k`` that puts it, projected at the design ``pose``,
         on the tracked line (Newton; ``anchor_ends=False``: one shift for both ends, least
@@ -760,20 +861,44 @@ class Tracker:
                 step = (r[:m] * g[:m] + r[m:] * g[m:]) / (g[:m] ** 2 + g[m:] ** 2)
                 d = d - np.concatenate([step, step])
         d = np.column_stack([d[:m], d[m:]])
+        # what is carried is the part the view does not explain (the measured offsets minus
+        # the edge model's at this pose); without a model, the offsets themselves
+        self._set_view_model(band)
+        delta = self._view_delta(pose)
+        delta = self._delta_mm if delta is None else delta
+        self._view_ref = None
+        if self._view_radius_mm is not None:
+            # the model's slope along the approach: the camera 5 % closer on its line of sight
+            # (between anchors the view changes mostly by the distance; evaluating the model
+            # at each frame's own pose would add the pose's noise in rotation to the offsets)
+            near = self._view_delta(Pose(pose.R, pose.t_mm * (1.0 - VIEW_STEP)))
+            if near is not None:
+                self._view_ref = (float(np.linalg.norm(pose.t_mm)), delta,
+                                  (delta - near) / VIEW_STEP)
+        d = d - np.column_stack([delta[:, 1], np.roll(delta[:, 0], -1)])[ks]
         if self._offset_mm is None:
             off, gain = np.full((len(c), 2), float(np.median(d))), 1.0
         else:
             off = self._offset_mm.copy()
         off[ks] += gain * (d - off[ks])
         self._offset_mm = off
-        self._model_mm = offset_polygon_mm(c, off)
-        # one offset per edge: the moved polygon's corners are its edges' ends (as before the
-        # ends had offsets of their own)
-        self._ends_mm = offset_edge_ends_mm(c, off) if self.tp.anchor_ends else \
-            np.concatenate([self._model_mm, np.roll(self._model_mm, -1, axis=0)])
+        if self._measured is None:
+            self._measured = np.zeros(len(c), bool)
+        self._measured[ks] = True
+        v = off[self._measured].mean(axis=1)
+        self._offset_spread_mm = float(1.4826 * np.median(np.abs(v - np.median(v))))
+        self._set_model(delta)
         self._anchor_t_mm, self._anchor_frame = pose.t_mm.copy(), k
         self._anchor_std = np.where(np.isfinite(std_dof), std_dof, 0.0)
         self._anchors += 1
+
+    def _anchor_lines(self, res: TrackResult) -> tuple[np.ndarray, np.ndarray]:
+        """The lines an anchor measures the offsets of: the edges the tracked pose rests on
+        and every edge found whose offset has not been measured yet (left out of the fits
+        until then; one left out as an outlier keeps its offset)."""
+        new = res.edges_found & ~(self._measured if self._measured is not None
+                                  else np.zeros_like(res.edges_found))
+        return res.lines_found, res.edges_used | new
 
     def _band_args(self, pose: Pose, edges_used: np.ndarray) -> tuple:
         """The arguments of :func:`band_fit` after the image (all picklable)."""
@@ -805,7 +930,8 @@ class Tracker:
                     f"std > {self.tp.anchor_gate_sigma}): the tracking or the band fit is "
                     "wrong"), ""
         self._set_offsets(band, lines, edges_used, std_band, frame,
-                          max(self.tp.anchor_gain, 1.0 / (self._anchors + 1)))
+                          max(self.tp.anchor_gain, 1.0 / (self._anchors + 1)),
+                          est.info.get("band"))
         return "", "re-anchored"
 
     def _reanchor(self, img: np.ndarray, res: TrackResult, timings: dict) -> TrackResult | str:
@@ -818,24 +944,26 @@ class Tracker:
         # whatever the outcome, the next attempt after the view has changed as much again
         self._anchor_t_mm, self._anchor_frame = res.pose.t_mm.copy(), res.frame
         self._attempts += 1
-        est, q, timings["anchor"] = self._band_fit(img, res.pose, res.edges_used)
-        why, note = self._apply_band(est, q, res.frame, res.pose, res.std_dof,
-                                     res.lines_ideal, res.edges_used)
+        lines, used = self._anchor_lines(res)
+        est, q, timings["anchor"] = self._band_fit(img, res.pose, used)
+        why, note = self._apply_band(est, q, res.frame, res.pose, res.std_dof, lines, used)
         if why:
             return why
         if note != "re-anchored":
             res.anchor = note
             return res
         # the same edges fitted again with the new offsets, and checked as every tracked frame
-        fit = self._fit_lines_pose(res.pose, res.lines_ideal, res.edges_used)
+        fit = self._fit_lines_pose(res.pose, lines, used)
         if isinstance(fit, str):
             return f"re-anchor: {fit}"
         pose, r, _, J, J2 = fit
-        why = self._check(pose, r, J, J2, res.edges_used)
+        why = self._check(pose, r, J, J2, used)
         if isinstance(why, str):
             return f"re-anchor: {why}"
         res.rms_px, std = why
         res.pose, res.std_dof = pose, np.hypot(std, self._anchor_std)
+        res.edges_used, res.lines_seen = used, int(used.sum())
+        res.lines_ideal = np.where(used[:, None], lines, np.nan)
         res.anchor = "re-anchored"
         timings["anchor"] = (time.perf_counter() - t) * 1e3
         return res
@@ -845,7 +973,8 @@ class Tracker:
         (in the background thread, or here), its result applied ``anchor_lag`` frames on."""
         self._anchor_t_mm, self._anchor_frame = res.pose.t_mm.copy(), res.frame
         self._attempts += 1
-        used = res.edges_used.copy()
+        lines, used = self._anchor_lines(res)
+        lines, used = lines.copy(), used.copy()
         if self.anchor_worker == "process":
             if self._executor is not None and self._executor.shape != img.shape:
                 self.close()     # frames of another size than the camera's (a test's crop)
@@ -865,8 +994,7 @@ class Tracker:
             except CutterposeError as e:
                 fut.set_exception(e)
         at = res.frame + self.tp.anchor_lag
-        self._pending = (at, fut, (res.frame, res.pose, res.std_dof.copy(),
-                                   res.lines_ideal.copy(), used))
+        self._pending = (at, fut, (res.frame, res.pose, res.std_dof.copy(), lines, used))
         res.anchor = "; ".join(filter(None, [res.anchor,
                                              f"re-anchor started (applied at frame {at})"]))
 
@@ -943,6 +1071,7 @@ class Tracker:
         tp = self.tp
         n = len(self._model_mm)
         pose = self.predict()
+        self._follow_view(pose)
         # no velocity yet (second frame, after a fall-back): the frame's motion is not
         # predicted, a wider band covers it
         hw = tp.band_half_width_px * (tp.cold_band_factor if self._prev is None else 1.0)
@@ -966,6 +1095,12 @@ class Tracker:
                 sub, np.array([u0, v0], float), self.camera, corners_pred,
                 self._line_params(hw, tp.shift_fraction * hw))
             lap("edges")
+            # an edge whose offset no anchor has measured yet (hidden then) has only the
+            # others' median offset, millimetres off on a worn holder: its position counts as
+            # far as the measured offsets agree (:meth:`_weigh_unmeasured`), its direction in
+            # full; the next anchor measures it
+            found, lines_found = seen, lines
+            new = seen & ~self._measured if self._measured is not None else None
             fam = np.bincount(np.arange(n)[seen] % 2, minlength=2)
             if seen.sum() < tp.min_lines or fam.min() < 2:
                 worst = int(np.argmin(support))
@@ -974,7 +1109,7 @@ class Tracker:
                         f"{100 * support[worst]:.0f} % of it): jump, occlusion or lost edges")
             start = pose
             for _ in range(tp.max_dropped_lines + 1):
-                fit = self._fit_lines_pose(start, lines, seen)
+                fit = self._fit_lines_pose(start, lines, seen, new)
                 if isinstance(fit, str):
                     return fit
                 pose, r, r_start, J, J2 = fit
@@ -1001,7 +1136,7 @@ class Tracker:
             return (f"the edges lie {moved:.1f} px from the bands' centres after "
                     f"{tp.max_passes} passes (> {tp.centred_fraction * hw:.1f} px): the "
                     "prediction is too far off")
-        why = self._check(pose, r, J, J2, seen)
+        why = self._check(pose, r, J, J2, seen, new)
         if isinstance(why, str):
             return why
         rms, std = why
@@ -1014,23 +1149,27 @@ class Tracker:
         res = TrackResult(k, "track", pose, std, True, "", rms_px=rms,
                           edge_support=float(support[seen].min()), corners_px=corners_px,
                           lines_seen=int(seen.sum()), corners_used=int(visible.sum()),
-                          lines_dropped=dropped, lines_ideal=lines, edges_used=seen)
+                          lines_dropped=dropped, lines_ideal=lines, edges_used=seen,
+                          lines_found=lines_found, edges_found=found)
         res.passes = passes
         return res
 
     def _fit_lines_pose(self, pose: Pose, lines: np.ndarray, seen: np.ndarray,
-                        iterations: int = 8):
+                        new: np.ndarray | None = None, iterations: int = 8):
         """Gauss-Newton on the model-to-line distances: for every seen edge ``k`` (from model
         corner ``k`` to ``k + 1``), the signed distances of both projected ends to the edge's
         line (ideal px); edges not seen are left out, so that a corner whose other edge is
         hidden still counts through its seen one (Drummond & Cipolla 2002: distances along
-        the edge normals). Parameters: the six DOFs. Returns the pose, the residuals at the
-        end and at the start (each (2 m,)) and the final Jacobian (2 m, 6), or a reason."""
+        the edge normals). Parameters: the six DOFs. ``new``: the edges whose offsets were not
+        measured (:meth:`_weigh_unmeasured`). Returns the pose, the residuals at the end
+        (weighted) and at the start (each (2 m,)) and the final Jacobian (2 m, 6), or a
+        reason."""
         n = len(self._model_mm)
         ks = np.nonzero(seen)[0]
         rows = np.concatenate([ks, n + ks])        # of the ends (P_k, P_k+1) of all edges
         L = np.concatenate([lines[ks], lines[ks]])
         Pe = self._ends_mm[rows]
+        sel = np.nonzero(new[ks])[0] if new is not None else np.zeros(0, int)
 
         def residuals(ps: Pose):
             X = ps.apply(Pe)
@@ -1047,6 +1186,8 @@ class Tracker:
         for _ in range(iterations):
             J2 = self._end_jacobian(pose)
             J = L[:, 0:1] * J2[0::2][rows] + L[:, 1:2] * J2[1::2][rows]
+            if len(sel):
+                r, J = self._weigh_unmeasured(pose, ks, sel, L, r, J)
             try:
                 step = np.linalg.lstsq(J, -r, rcond=None)[0]
             except np.linalg.LinAlgError:
@@ -1062,15 +1203,52 @@ class Tracker:
             # converged: the last step is far below the std (>= ~0.005 mm / deg here)
             if np.all(np.abs(step) < 1e-4):
                 break
+        if len(sel):
+            r = self._weigh_unmeasured(pose, ks, sel, L, r, J)[0]
         # the Jacobian of the last step (its pose differs from the result by < 1e-4)
         return pose, r, r0, J, J2
+
+    def _weigh_unmeasured(self, pose: Pose, ks: np.ndarray, sel: np.ndarray, L: np.ndarray,
+                          r: np.ndarray, J: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Residuals and Jacobian rows (start rows, then end rows, of the edges ``ks``) with
+        the edges ``ks[sel]``, whose offsets no anchor has measured, weighted as edges with
+        an unknown offset ``o`` of prior std ``s_o`` (the measured edges' spread about their
+        median, which the unmeasured ones carry): ``o`` moves the pair of end residuals along
+        ``g`` (their derivatives w.r.t. ``o``), so that component gets the weight
+        ``sqrt(s^2 / (s^2 + |g|^2 s_o^2))`` (``s``: the corners' RMS of the last full
+        measurement) and the orthogonal one, the edge's direction, the weight 1. Equal
+        offsets (a uniform break) keep the edge's position; a worn holder's, which differ
+        by millimetres, keep its direction only."""
+        m = len(ks)
+        i = np.concatenate([sel, sel + m])
+        k = np.concatenate([ks[sel], ks[sel]])
+        nrm = self.holder.edge_normals[k]
+        Rn = np.column_stack([nrm, np.zeros(len(k))]) @ pose.R.T
+        X = pose.apply(self._ends_mm[np.concatenate([ks[sel], len(self._model_mm) + ks[sel]])])
+        duv = (Rn[:, :2] - X[:, :2] / X[:, 2:3] * Rn[:, 2:3]) / X[:, 2:3] @ self.K[:2, :2].T
+        g = L[i, 0] * duv[:, 0] + L[i, 1] * duv[:, 1]
+        q = len(sel)
+        gs, ge = g[:q], g[q:]
+        gn = np.hypot(gs, ge)
+        us, ue = gs / gn, ge / gn
+        s2 = LINE_SCALE_PX ** 2
+        c = 1.0 - np.sqrt(s2 / (s2 + gn ** 2 * self._offset_spread_mm ** 2))
+        r, J = r.copy(), J.copy()
+        a, b = sel, sel + m
+        pr = us * r[a] + ue * r[b]
+        r[a] -= c * us * pr
+        r[b] -= c * ue * pr
+        pj = us[:, None] * J[a] + ue[:, None] * J[b]
+        J[a] -= (c * us)[:, None] * pj
+        J[b] -= (c * ue)[:, None] * pj
+        return r, J
 
     def _end_jacobian(self, pose: Pose) -> np.ndarray:
         """Pixel Jacobian (80, 6) of both ends of every edge (``P_k``, then ``P_k+1``)."""
         return pixel_jacobian(pose.R, pose.t_mm, self._ends_mm, self.K)[0]
 
     def _check(self, pose: Pose, r: np.ndarray, J: np.ndarray, J2: np.ndarray,
-               seen: np.ndarray):
+               seen: np.ndarray, new: np.ndarray | None = None):
         """The checks of a tracked pose (module doc, step 4) on the model-to-line distances
         ``r`` (Jacobian ``J`` w.r.t. the DOFs): ``(rms_px, std_dof)`` when it passes, else
         the reason. The std is the Gauss-Newton covariance ``s^2 (J^T J)^-1``."""
@@ -1094,14 +1272,15 @@ class Tracker:
         # the edges left out cost information: a DOF that the seen edges pin down much worse
         # than all 20 would (a short edge family lost, far away) is not the full
         # measurement's accuracy, so the frame is measured in full
-        ratio = self._std_ratio(pose, seen, J2)
+        ratio = self._std_ratio(pose, seen, J2, new)
         j = int(np.argmax(ratio))
         if ratio[j] > tp.max_std_ratio:
             return (f"the {int(seen.sum())} edges seen fix {DOF_NAMES[j]} {ratio[j]:.1f}x less "
                     f"well than all {len(seen)} (> {tp.max_std_ratio}): too few edges")
         return rms, std
 
-    def _std_ratio(self, pose: Pose, seen: np.ndarray, J2: np.ndarray) -> np.ndarray:
+    def _std_ratio(self, pose: Pose, seen: np.ndarray, J2: np.ndarray,
+                   new: np.ndarray | None = None) -> np.ndarray:
         """Per DOF, the std from the seen edges over the std from all edges (same noise):
         ``sqrt(diag((J_s^T J_s)^-1) / diag((J^T J)^-1))`` with ``J`` the model-to-line
         distances' Jacobian (``J2``: :meth:`_end_jacobian`), the lines the model's edges
@@ -1112,8 +1291,14 @@ class Tracker:
         nrm = np.concatenate([nrm, nrm])
         J = nrm[:, 0:1] * J2[0::2] + nrm[:, 1:2] * J2[1::2]      # rows: edge k's two ends
         use = np.concatenate([seen, seen])
+        Ju = J[use]
+        ks = np.nonzero(seen)[0]
+        if new is not None and new[ks].any():   # weighted as in the fit
+            L = np.column_stack([nrm, np.zeros(len(nrm))])[np.concatenate([ks, ks + len(seen)])]
+            Ju = self._weigh_unmeasured(pose, ks, np.nonzero(new[ks])[0], L,
+                                        np.zeros(len(Ju)), Ju)[1]
         with np.errstate(invalid="ignore"):
-            return np.sqrt(np.diag(np.linalg.inv(J[use].T @ J[use]))
+            return np.sqrt(np.diag(np.linalg.inv(Ju.T @ Ju))
                            / np.diag(np.linalg.inv(J.T @ J)))
 
     def track(self, frames) -> list[TrackResult]:
