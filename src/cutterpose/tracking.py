@@ -1181,7 +1181,9 @@ class Tracker:
         r = residuals(pose)
         if r is None:
             return "the predicted holder is behind the camera"
-        r0 = r
+        # where the edges lie from the bands' centres (an unmeasured edge's position as far as
+        # it is known)
+        r0 = self._weigh_unmeasured(pose, ks, sel, L, r)[0] if len(sel) else r
         dof = pose.dof
         for _ in range(iterations):
             J2 = self._end_jacobian(pose)
@@ -1209,7 +1211,7 @@ class Tracker:
         return pose, r, r0, J, J2
 
     def _weigh_unmeasured(self, pose: Pose, ks: np.ndarray, sel: np.ndarray, L: np.ndarray,
-                          r: np.ndarray, J: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+                          r: np.ndarray, J: np.ndarray | None = None) -> tuple:
         """Residuals and Jacobian rows (start rows, then end rows, of the edges ``ks``) with
         the edges ``ks[sel]``, whose offsets no anchor has measured, weighted as edges with
         an unknown offset ``o`` of prior std ``s_o`` (the measured edges' spread about their
@@ -1233,11 +1235,14 @@ class Tracker:
         us, ue = gs / gn, ge / gn
         s2 = LINE_SCALE_PX ** 2
         c = 1.0 - np.sqrt(s2 / (s2 + gn ** 2 * self._offset_spread_mm ** 2))
-        r, J = r.copy(), J.copy()
+        r = r.copy()
         a, b = sel, sel + m
         pr = us * r[a] + ue * r[b]
         r[a] -= c * us * pr
         r[b] -= c * ue * pr
+        if J is None:
+            return r, None
+        J = J.copy()
         pj = us[:, None] * J[a] + ue[:, None] * J[b]
         J[a] -= (c * us)[:, None] * pj
         J[b] -= (c * ue)[:, None] * pj
