@@ -779,10 +779,10 @@ class Tracker:
         (:class:`~cutterpose.solvers.edge_band.BandPose`; None keeps the last): the fit's
         median radius over its segments at every edge end and its edge shape, with the nominal
         photometry (the shipped offset grid's). One radius, not each edge's: an edge's own
-        radius rests on its four segments, and a wrong one (an edge under slurry) gave its
-        ends slopes of 0.5 mm per relative change of distance where the others had 0.1 (the
-        analytic ``field`` approach); the common trend, a depth error, is the part that
-        matters (docs/RESULTS.md section 14)."""
+        radius rests on its four segments, and a wrong one (3.98 mm among 0.2-0.4 on the
+        analytic ``field`` approach) put that edge's model 0.86 mm inside and the tracker
+        lost it; the common trend, a depth error, is the part that matters (docs/RESULTS.md
+        section 14)."""
         if not self.tp.view_model or band is None:
             return
         r = band.fit.radius_median_mm
@@ -894,8 +894,8 @@ class Tracker:
 
     def _anchor_lines(self, res: TrackResult) -> tuple[np.ndarray, np.ndarray]:
         """The lines an anchor measures the offsets of: the edges the tracked pose rests on
-        and every edge found whose offset has not been measured yet (left out of the fits
-        until then; one left out as an outlier keeps its offset)."""
+        and every edge found whose offset has not been measured yet (fitted by its direction
+        until then, :meth:`_weigh_unmeasured`; one left out as an outlier keeps its offset)."""
         new = res.edges_found & ~(self._measured if self._measured is not None
                                   else np.zeros_like(res.edges_found))
         return res.lines_found, res.edges_used | new
@@ -1217,8 +1217,8 @@ class Tracker:
         an unknown offset ``o`` of prior std ``s_o`` (the measured edges' spread about their
         median, which the unmeasured ones carry): ``o`` moves the pair of end residuals along
         ``g`` (their derivatives w.r.t. ``o``), so that component gets the weight
-        ``sqrt(s^2 / (s^2 + |g|^2 s_o^2))`` (``s``: the corners' RMS of the last full
-        measurement) and the orthogonal one, the edge's direction, the weight 1. Equal
+        ``sqrt(s^2 / (s^2 + |g|^2 s_o^2))`` (``s``: ``LINE_SCALE_PX``, a tracked line's
+        scatter about the model) and the orthogonal one, the edge's direction, the weight 1. Equal
         offsets (a uniform break) keep the edge's position; a worn holder's, which differ
         by millimetres, keep its direction only."""
         m = len(ks)
