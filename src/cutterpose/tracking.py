@@ -168,7 +168,7 @@ from .solvers.estimate import PoseEstimate
 
 __all__ = ["TrackParams", "TrackResult", "Tracker", "PoseFilter", "approach_limits",
            "approach_params", "se3_exp", "se3_log", "offset_polygon_mm",
-           "offset_edge_ends_mm"]
+           "offset_edge_ends_mm", "line_offsets_mm"]
 
 
 # ------------------------------------------------------------------------------------------
@@ -339,6 +339,42 @@ VIEW_REACH = 0.15
 #: the scale (px) of a tracked edge's distance from the model, against which an unmeasured
 #: edge's offset prior is weighed (the tracked frames' RMS is 0.3-0.6 px on broken edges)
 LINE_SCALE_PX = 0.3
+
+
+def line_offsets_mm(pose: Pose, lines: np.ndarray, seen: np.ndarray, holder: Holder, K,
+                    per_end: bool = True) -> np.ndarray:
+    """(N, 2) outward offsets (mm, face plane) of the image ``lines`` (N, 3; ideal px) from
+    the design edges seen with ``pose``: the shift of each end of design edge ``k`` along its
+    outward normal that puts it, projected, on line ``k`` (Newton); ``per_end=False``: one
+    shift for both ends of an edge (least squares). NaN for edges not ``seen``."""
+    c = np.asarray(holder.corners_mm, float)
+    nrm = holder.edge_normals
+    K = np.asarray(K, float)
+    out = np.full((len(c), 2), np.nan)
+    ks = np.nonzero(seen)[0]
+    if len(ks) == 0:
+        return out
+    ends = np.concatenate([c[ks], np.roll(c, -1, axis=0)[ks]])     # (2m, 2)
+    nn = np.concatenate([nrm[ks], nrm[ks]])
+    L = np.concatenate([lines[ks], lines[ks]])
+    Rn = np.column_stack([nn, np.zeros(len(nn))]) @ pose.R.T     # d X_cam / d offset
+    K2 = K[:2, :2]
+    m = len(ks)
+    d = np.zeros(2 * m)
+    for _ in range(3):   # the projection is nearly linear over a millimetre
+        X = np.column_stack([ends + d[:, None] * nn, np.zeros(len(nn))]) @ pose.R.T \
+            + pose.t_mm
+        uv = X[:, :2] / X[:, 2:3] @ K2.T + K[:2, 2]
+        r = L[:, 0] * uv[:, 0] + L[:, 1] * uv[:, 1] + L[:, 2]
+        duv = (Rn[:, :2] - X[:, :2] / X[:, 2:3] * Rn[:, 2:3]) / X[:, 2:3] @ K2.T
+        g = L[:, 0] * duv[:, 0] + L[:, 1] * duv[:, 1]
+        if per_end:
+            d = d - r / g
+        else:
+            step = (r[:m] * g[:m] + r[m:] * g[m:]) / (g[:m] ** 2 + g[m:] ** 2)
+            d = d - np.concatenate([step, step])
+    out[ks] = np.column_stack([d[:m], d[m:]])
+    return out
 
 
 # ------------------------------------------------------------------------------------------
@@ -837,30 +873,10 @@ class Tracker:
         squares), weighted by ``gain`` against the offsets carried; an edge not seen keeps its
         last offsets (the seen edges' median the first time)."""
         c = np.asarray(self.holder.corners_mm, float)
-        nrm = self.holder.edge_normals
         ks = np.nonzero(seen)[0]
         if len(ks) == 0:
             return
-        ends = np.concatenate([c[ks], np.roll(c, -1, axis=0)[ks]])     # (2m, 2)
-        nn = np.concatenate([nrm[ks], nrm[ks]])
-        L = np.concatenate([lines[ks], lines[ks]])
-        Rn = np.column_stack([nn, np.zeros(len(nn))]) @ pose.R.T     # d X_cam / d offset
-        K2 = self.K[:2, :2]
-        m = len(ks)
-        d = np.zeros(2 * m)          # per end (anchor_ends) or, pooled, per edge
-        for _ in range(3):   # the projection is nearly linear over a millimetre
-            X = np.column_stack([ends + d[:, None] * nn, np.zeros(len(nn))]) @ pose.R.T \
-                + pose.t_mm
-            uv = X[:, :2] / X[:, 2:3] @ K2.T + self.K[:2, 2]
-            r = L[:, 0] * uv[:, 0] + L[:, 1] * uv[:, 1] + L[:, 2]
-            duv = (Rn[:, :2] - X[:, :2] / X[:, 2:3] * Rn[:, 2:3]) / X[:, 2:3] @ K2.T
-            g = L[:, 0] * duv[:, 0] + L[:, 1] * duv[:, 1]
-            if self.tp.anchor_ends:
-                d = d - r / g
-            else:
-                step = (r[:m] * g[:m] + r[m:] * g[m:]) / (g[:m] ** 2 + g[m:] ** 2)
-                d = d - np.concatenate([step, step])
-        d = np.column_stack([d[:m], d[m:]])
+        d = line_offsets_mm(pose, lines, seen, self.holder, self.K, self.tp.anchor_ends)[ks]
         # what is carried is the part the view does not explain (the measured offsets minus
         # the edge model's at this pose); without a model, the offsets themselves
         self._set_view_model(band)
