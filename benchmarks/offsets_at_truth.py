@@ -104,7 +104,10 @@ def main() -> int:
         oc = np.where(ok, meas - np.nanmean(meas, 0), 0.0)
         b = float((xc * oc).sum() / (xc ** 2).sum())
         bk = (xc * oc).sum(0) / np.maximum((xc ** 2).sum(0), 1e-12)
-        rms = (lambda res: float(np.sqrt(np.mean(res[ok] ** 2))))
+
+        def rms(res):
+            return float(np.sqrt(np.mean(res[ok] ** 2)))
+
         print(f"a part fixed in pixels, a_k + b Z/f: rms about a constant per edge "
               f"{rms(oc):.3f} mm, with one b = {b:.2f} px {rms(oc - b * xc):.3f} mm, with b per "
               f"edge {rms(oc - bk * xc):.3f} mm (b per edge {np.nanmin(bk):.1f}..."
