@@ -311,11 +311,13 @@ def offset_polygon_mm(corners_mm: np.ndarray, offset_mm: np.ndarray) -> np.ndarr
         n_m = n
         rhs = np.einsum("ij,ij->i", n, c) + d            # edge k: n_k . x = n_k . c_k + d_k
         q = c + d[:, None] * n
-    A = np.stack([np.roll(n_m, 1, axis=0), n_m], axis=1)  # corner i: edges i - 1 and i
-    b2 = np.column_stack([np.roll(rhs, 1), rhs])
-    ok = np.abs(np.linalg.det(A)) > 1e-6
-    if ok.any():
-        q[ok] = np.linalg.solve(A[ok], b2[ok][..., None])[..., 0]
+    # corner i: edges i - 1 (p . x = e) and i (n_m . x = rhs), Cramer's rule (a 2 x 2 system
+    # per corner; np.linalg.solve's overhead was most of a tracked frame's 0.2 ms here)
+    pn, e = np.roll(n_m, 1, axis=0), np.roll(rhs, 1)
+    det = pn[:, 0] * n_m[:, 1] - pn[:, 1] * n_m[:, 0]
+    ok = np.abs(det) > 1e-6
+    q[ok, 0] = ((e * n_m[:, 1] - rhs * pn[:, 1]) / np.where(ok, det, 1.0))[ok]
+    q[ok, 1] = ((pn[:, 0] * rhs - n_m[:, 0] * e) / np.where(ok, det, 1.0))[ok]
     return np.column_stack([q, np.zeros(len(q))])
 
 
@@ -341,6 +343,19 @@ VIEW_REACH = 0.15
 LINE_SCALE_PX = 0.3
 
 
+def _offset_slope(pose: Pose, points_mm: np.ndarray, normals: np.ndarray, L: np.ndarray,
+                  K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Signed distances (ideal px) of the projected face-plane ``points_mm`` (M, 2) to the
+    lines ``L`` (M, 3), and their derivatives w.r.t. an outward shift of each point along its
+    ``normals`` (M, 2) in the face plane (px per mm)."""
+    X = np.column_stack([points_mm, np.zeros(len(points_mm))]) @ pose.R.T + pose.t_mm
+    Rn = np.column_stack([normals, np.zeros(len(normals))]) @ pose.R.T   # d X_cam / d shift
+    uv = X[:, :2] / X[:, 2:3] @ K[:2, :2].T + K[:2, 2]
+    duv = (Rn[:, :2] - X[:, :2] / X[:, 2:3] * Rn[:, 2:3]) / X[:, 2:3] @ K[:2, :2].T
+    return (L[:, 0] * uv[:, 0] + L[:, 1] * uv[:, 1] + L[:, 2],
+            L[:, 0] * duv[:, 0] + L[:, 1] * duv[:, 1])
+
+
 def line_offsets_mm(pose: Pose, lines: np.ndarray, seen: np.ndarray, holder: Holder, K,
                     per_end: bool = True) -> np.ndarray:
     """(N, 2) outward offsets (mm, face plane) of the image ``lines`` (N, 3; ideal px) from
@@ -357,17 +372,10 @@ def line_offsets_mm(pose: Pose, lines: np.ndarray, seen: np.ndarray, holder: Hol
     ends = np.concatenate([c[ks], np.roll(c, -1, axis=0)[ks]])     # (2m, 2)
     nn = np.concatenate([nrm[ks], nrm[ks]])
     L = np.concatenate([lines[ks], lines[ks]])
-    Rn = np.column_stack([nn, np.zeros(len(nn))]) @ pose.R.T     # d X_cam / d offset
-    K2 = K[:2, :2]
     m = len(ks)
     d = np.zeros(2 * m)
     for _ in range(3):   # the projection is nearly linear over a millimetre
-        X = np.column_stack([ends + d[:, None] * nn, np.zeros(len(nn))]) @ pose.R.T \
-            + pose.t_mm
-        uv = X[:, :2] / X[:, 2:3] @ K2.T + K[:2, 2]
-        r = L[:, 0] * uv[:, 0] + L[:, 1] * uv[:, 1] + L[:, 2]
-        duv = (Rn[:, :2] - X[:, :2] / X[:, 2:3] * Rn[:, 2:3]) / X[:, 2:3] @ K2.T
-        g = L[:, 0] * duv[:, 0] + L[:, 1] * duv[:, 1]
+        r, g = _offset_slope(pose, ends + d[:, None] * nn, nn, L, K)
         if per_end:
             d = d - r / g
         else:
@@ -848,11 +856,10 @@ class Tracker:
         u = float(np.clip(np.linalg.norm(pose.t_mm) / s_a - 1.0, -VIEW_REACH, VIEW_REACH))
         self._set_model(d_a + g * u)
 
-    def _set_model(self, delta_mm: np.ndarray | None) -> None:
+    def _set_model(self, delta_mm: np.ndarray) -> None:
         """The moved model (``_model_mm``, ``_ends_mm``) from the carried offsets and the
-        view's part ``delta_mm`` (None: the last view's)."""
-        if delta_mm is not None:
-            self._delta_mm = delta_mm
+        view's part ``delta_mm``."""
+        self._delta_mm = delta_mm
         if self._offset_mm is None:
             return
         c = np.asarray(self.holder.corners_mm, float)
@@ -1240,11 +1247,8 @@ class Tracker:
         m = len(ks)
         i = np.concatenate([sel, sel + m])
         k = np.concatenate([ks[sel], ks[sel]])
-        nrm = self.holder.edge_normals[k]
-        Rn = np.column_stack([nrm, np.zeros(len(k))]) @ pose.R.T
-        X = pose.apply(self._ends_mm[np.concatenate([ks[sel], len(self._model_mm) + ks[sel]])])
-        duv = (Rn[:, :2] - X[:, :2] / X[:, 2:3] * Rn[:, 2:3]) / X[:, 2:3] @ self.K[:2, :2].T
-        g = L[i, 0] * duv[:, 0] + L[i, 1] * duv[:, 1]
+        ends = self._ends_mm[np.concatenate([ks[sel], len(self._model_mm) + ks[sel]]), :2]
+        g = _offset_slope(pose, ends, self.holder.edge_normals[k], L[i], self.K)[1]
         q = len(sel)
         gs, ge = g[:q], g[q:]
         gn = np.hypot(gs, ge)
