@@ -39,6 +39,7 @@ from __future__ import annotations
 import argparse
 import csv
 import json
+import math
 import sys
 import time
 from dataclasses import replace
@@ -85,7 +86,8 @@ def run(seq: Path, with_full: bool = True, track: TrackParams | None = None,
                "wall_ms": wall, "passes": r.passes, "lines_seen": r.lines_seen,
                "lines_dropped": r.lines_dropped, "rms_px": r.rms_px,
                "reason": r.fallback_reason, "anchor": r.anchor,
-               "anchor_wait_ms": r.timings_ms.get("anchor_wait", 0.0)}
+               "anchor_wait_ms": r.timings_ms.get("anchor_wait", 0.0),
+               "full_wait_ms": r.timings_ms.get("full_wait", math.nan)}
         if fps:
             row["latency_ms"] = (time.perf_counter() - arrival) * 1e3
             row["fps"] = fps
@@ -170,9 +172,22 @@ def summary(name: str, rows: list[dict], truth: dict) -> None:
               f"{np.median(lat):.1f} ms (p90 {np.percentile(lat, 90):.1f}, max {lat.max():.1f}); "
               f"answered later than one frame ({1e3 / fps:.0f} ms): {int(np.sum(lat > 1e3 / fps))}"
               f" of {len(lat)}")
+    # deferred fall-backs (TrackParams.defer_fallbacks with anchor_lag > 0): the frame and
+    # those before the take-up have no pose
+    started = [r for r in rows if r["reason"].endswith(")") and
+               "full measurement started (applied at" in r["reason"]]
+    pending = [r for r in rows if " pending (applied at frame" in r["reason"]]
+    taken = [r for r in rows if np.isfinite(r["full_wait_ms"])]
+    if started or pending:
+        wait = np.array([r["full_wait_ms"] for r in taken])
+        print(f"  deferred fall-backs: started on {[r['frame'] for r in started]}, frames "
+              f"without a pose while pending {[r['frame'] for r in pending]}; taken up on "
+              f"{[(r['frame'], r['mode']) for r in taken]}, waited for median "
+              f"{np.median(wait) if len(wait) else np.nan:.1f} ms (max "
+              f"{wait.max() if len(wait) else np.nan:.1f})")
     reasons: dict[str, list] = {}
     for r in rows[1:]:
-        if r["mode"] != "track":
+        if r["mode"] != "track" and r not in pending:
             key = r["reason"].split(":")[0][:70]
             reasons.setdefault(key, []).append(r["frame"])
     for k, v in reasons.items():

@@ -214,3 +214,33 @@ def test_batched_lmeds_equals_one_set_at_a_time():
         L1, s1 = lmeds_line(p, prior=priors[k], seed=k, gate_points=gates[k], gate_px=2.5)
         assert np.allclose(L[k], L1, atol=1e-12) and s[k] == pytest.approx(s1, rel=1e-12)
         assert np.median(np.abs(p @ L[k][:2] + L[k][2])) < 0.3   # on the inliers' line
+
+
+def test_outline_caches_forget_the_least_recently_used_entry():
+    """An approach's outline search uses 45 coarse templates at every full measurement and a
+    few fine ones per frame; a cache cleared whole when full (as before) rebuilt all of them
+    about every other fall-back (~190 ms). The caches keep the recent entries instead, and
+    :func:`prepare_outline_search` builds the coarse ones ahead (a tracker's worker)."""
+    from cutterpose.image.region import (
+        _OUTLINE_CACHE,
+        _coarse_templates,
+        _Recent,
+        prepare_outline_search,
+    )
+    from cutterpose.tracking import approach_params
+
+    c = _Recent(3)
+    for k in "abc":
+        c.keep(k, k.upper())
+    assert c.recall("a") == "A"          # used: "b" is now the oldest
+    c.keep("d", "D")
+    assert list(c) == ["c", "a", "d"] and c.recall("b") is None
+    cam, hol = default_camera("table1"), default_holder()
+    params = approach_params(cam)
+    _OUTLINE_CACHE.clear()
+    prepare_outline_search(cam, hol, params)
+    gd, tpls = _coarse_templates(cam, hol, params)
+    n = len(params.roi_depths_mm) * len(params.roi_gammas_deg)
+    assert len(gd) == n == len(_OUTLINE_CACHE) and n > 40
+    # built once: the same objects again
+    assert all(a is b for a, b in zip(tpls, _coarse_templates(cam, hol, params)[1]))

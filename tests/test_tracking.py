@@ -425,7 +425,7 @@ def test_deferred_reanchor_that_disagrees_falls_back_on_take_up(changing_break, 
     monkeypatch.setattr(tracking, "measure_band", shifted)
     # a thread: the patched function is this process's (a worker process imports its own)
     with Tracker(cam, hol, method="dm+b", params=params, anchor_worker="thread",
-                 track=TrackParams(anchor_lag=2)) as tracker:
+                 track=TrackParams(anchor_lag=2, defer_fallbacks=False)) as tracker:
         res = [tracker.update(f) for f in frames]
         assert [r.mode for r in res] == ["full", "track", "track", "full"], \
             [(r.mode, r.fallback_reason) for r in res]
@@ -433,6 +433,61 @@ def test_deferred_reanchor_that_disagrees_falls_back_on_take_up(changing_break, 
             res[3].fallback_reason
         assert "Z_mm" in res[3].fallback_reason and tracker._pending is None
         assert abs(res[3].pose.dof[5] - poses[3].dof[5]) < 1.0
+    # by default the fall-back is measured beside the tracking as well: frame 3 has no pose
+    # yet and says when it will
+    with Tracker(cam, hol, method="dm+b", params=params, anchor_worker="thread",
+                 track=TrackParams(anchor_lag=2)) as tracker:
+        r = [tracker.update(f) for f in frames][3]
+        assert r.mode == "lost" and r.pose is None
+        assert r.fallback_reason.startswith("re-anchor (frame 1):")
+        assert r.fallback_reason.endswith("full measurement started (applied at frame 5)")
+        assert tracker._pending is None and tracker._pending_full[:2] == (5, 3)
+
+
+def test_deferred_fall_back_is_applied_lag_frames_later_by_any_worker(sequence):
+    """``anchor_lag = 2``: the jump's frame is measured in full beside the tracking; it and the
+    next frame are answered at once without a pose (saying why and when), the frame after
+    tracks from that measurement's pose carried by the motion before the jump (and has it as
+    its ``measurement``), and the tracking goes on. The same poses with the measurement in a
+    worker process, a thread, or inline."""
+    from cutterpose.tracking import TrackParams
+
+    d, truth = sequence
+    frames = [e["frame"] for e in truth["images"]]
+    j = frames.index(JUMP)
+    out = {}
+    for worker in ("process", "thread", "inline"):
+        with Tracker(CAM, default_holder(), "dm+", limits=SHARP, filter=True,
+                     anchor_worker=worker, track=TrackParams(anchor_lag=2)) as tracker:
+            out[worker] = [tracker.update(d / e["file"]) for e in truth["images"]]
+    res = out["process"]
+    modes = [r.mode for r in res]
+    assert modes == ["full"] + ["track"] * (j - 1) + ["lost", "lost"] + \
+        ["track"] * (len(frames) - j - 2), [(r.mode, r.fallback_reason) for r in res]
+    assert res[j].fallback_reason.endswith(f"full measurement started (applied at frame "
+                                           f"{j + 2})"), res[j].fallback_reason
+    assert "edges" in res[j].fallback_reason        # why tracking failed
+    assert res[j + 1].fallback_reason == (f"full measurement of frame {j} pending (applied "
+                                          f"at frame {j + 2})")
+    assert res[j].timings_ms["total"] < 1e3 * 0.5 * res[j + 2].measurement.timings_ms[
+        "total"] + 50.0   # not waiting for the measurement
+    r = res[j + 2]
+    assert r.anchor == f"full measurement of frame {j} applied"
+    assert r.measurement is not None and r.measurement.ok
+    assert r.filter_reset.startswith("fall-back")
+    np.testing.assert_array_equal(r.filtered_pose.t_mm, r.pose.t_mm)
+    for other in ("thread", "inline"):
+        for a, b in zip(res, out[other]):
+            assert (a.mode, a.fallback_reason, a.anchor) == (b.mode, b.fallback_reason,
+                                                             b.anchor)
+            if a.pose is not None:
+                np.testing.assert_array_equal(a.pose.dof, b.pose.dof)
+    for r, e in zip(res, truth["images"]):
+        if r.mode == "track":
+            err = pose_errors(np.array(e["R_cam_holder"]), np.array(e["t_cam_holder_mm"]),
+                              r.pose.R, r.pose.t_mm).dof[0]
+            assert np.all(np.abs(err[3:]) < 0.5) and np.all(np.abs(err[:3]) < 0.2), \
+                (e["frame"], err)
 
 
 def test_approach_outline_match_settles_the_depth():

@@ -605,7 +605,9 @@ def track_cmd(
     anchor_lag: int = typer.Option(None, min=0, help="dm+b: run the re-anchors' band fits "
                                    "(~200 ms) beside the tracking and apply them this many "
                                    "frames later (0: on their frame, which waits; default: "
-                                   "the tracker's)."),
+                                   "the tracker's); > 0 also measures a frame tracking "
+                                   "cannot follow beside it (that frame and those before the "
+                                   "take-up have no pose, and say so)."),
 ):
     """Track the holder through a sequence: edges predicted from the previous pose, the full
     measurement on the first frame and whenever tracking fails (said per frame)."""

@@ -104,6 +104,19 @@ length on the holder; then the fitted pose is the design edge's directly.
   each. A gate failure makes frame ``j + L`` a full measurement with the
   reason; a full measurement in between drops the pending result. ``TrackResult.anchor``
   says "re-anchor started" on frame ``j`` and "re-anchored (frame j)" on frame ``j + L``.
+* **deferred fall-backs** (``anchor_lag = L > 0`` and ``TrackParams.defer_fallbacks``, the
+  default then): a frame ``j`` the tracking cannot follow needs a full measurement (~250 ms
+  on a worn holder), which would put the next two or three frames of a 10 fps camera behind.
+  It runs on the same worker instead; frame ``j`` is answered at once without a pose
+  (``"lost"``, the reason and "full measurement started (applied at frame j + L)"), and so
+  are the frames up to ``j + L`` ("pending"). At ``j + L`` the measurement is taken up as an
+  inline one would be (the offsets from frame ``j``'s edges at its pose), its pose carried
+  to frame ``j + L`` by the motion per frame before the failure, and frame ``j + L`` is
+  tracked from there (the wider band of an unknown velocity; ``TrackResult.measurement`` is
+  frame ``j``'s, ``anchor`` says "full measurement of frame j applied"). A refused
+  measurement or a frame that cannot be tracked from it starts the next one. The frames
+  are fixed, so the poses do not depend on the worker or the machine's speed. The first
+  frame is always measured on the spot (there is nothing to track from).
 
 ``method="dm+"`` tracks the design model itself (no offsets, no re-anchoring): right for a
 sharp edge (declare it, ``QualityLimits.edge_break_mm = 0``; otherwise its verdict carries a
@@ -153,6 +166,7 @@ from .geometry.pose import Pose, pixel_jacobian, wrap_deg
 from .image import FeatureParams, as_grey_u8
 from .image import edge_model as em
 from .image.edges import intersect_consecutive, robust_edge_lines
+from .image.region import prepare_outline_search
 from .methods import get_method
 from .pipeline import (
     DOF_NAMES,
@@ -222,54 +236,73 @@ def band_fit(img: np.ndarray, camera: Camera, holder: Holder, pose: Pose,
     return est, band_verdict(est, limits), (time.perf_counter() - t) * 1e3
 
 
-def _band_fit_shared(shm_name: str, shape: tuple, *args):
-    """:func:`band_fit` in the worker process, on the frame in shared memory ``shm_name``."""
+def full_measurement(img: np.ndarray, camera: Camera, holder: Holder, method: str,
+                     params: FeatureParams, limits: QualityLimits, edge_look) -> Measurement:
+    """A fall-back's full measurement (:func:`measure`, with the corners the tracker's
+    offsets start from)."""
+    return measure(img, camera, holder, method, params, limits, edge_look=edge_look,
+                   corners=True)
+
+
+def _run_shared(fn, shm_name: str, shape: tuple, *args):
+    """``fn(frame, *args)`` in the worker process, on the frame in shared memory
+    ``shm_name`` (``fn``: :func:`band_fit` or :func:`full_measurement`)."""
     from multiprocessing import shared_memory
 
     # attached, not owned: the tracker's process unlinks it (a spawned worker shares its
     # resource tracker, which holds the name once however often it is registered)
     shm = shared_memory.SharedMemory(name=shm_name)
     try:
-        img = np.ndarray(shape, np.uint8, buffer=shm.buf)
-        out = band_fit(img, *args)
-        del img
-        return out
+        # copied out (~2 ms for 12 MP): a measurement keeps views of its frame, which must
+        # outlive the block (pickling a view of a closed block crashes the worker), and the
+        # block is free for the next job
+        img = np.ndarray(shape, np.uint8, buffer=shm.buf).copy()
     finally:
         shm.close()
+    return fn(img, *args)
 
 
-def _warm_worker() -> None:
-    """Import the band fit in the worker before the first re-anchor needs it."""
+def _warm_worker(camera: Camera | None = None, holder: Holder | None = None,
+                 params: FeatureParams | None = None) -> None:
+    """Import the band fit in the worker before the first re-anchor needs it, and build the
+    full measurement's outline templates before the first fall-back does."""
     from .solvers import edge_band  # noqa: F401
+
+    if camera is not None:
+        prepare_outline_search(camera, holder, params)
 
 
 class AnchorProcess:
-    """One worker process for the deferred re-anchors (``anchor_worker="process"``): the frame
-    goes through a shared-memory block of its size (one pending re-anchor at a time, so one
-    block), the rest of the arguments by pickle. A process, not a thread: the band fit is
+    """One worker process for the deferred re-anchors and fall-backs
+    (``anchor_worker="process"``): the frame goes through a shared-memory block of its size
+    (one pending job at a time, so one block, which the job copies its frame out of; a job
+    dropped by a fall-back and still queued may read the next job's frame: its result is
+    never read), the rest of the arguments by pickle. A process, not a thread: the band fit is
     ~200 ms of mostly small NumPy calls that hold the interpreter lock, which a thread would
     take from the tracking (spawned, not forked: the caller may have threads of its own; as
     for any spawned process, a script's main module must be importable, i.e. not read from
     standard input: else the worker fails, and each re-anchor falls back to a full
     measurement with that reason)."""
 
-    def __init__(self, shape: tuple):
+    def __init__(self, shape: tuple, *warm):
+        """``warm``: ``(camera, holder, params)`` of the full measurements it may run."""
         import multiprocessing
         from multiprocessing import shared_memory
 
         self.shape = tuple(shape)
         self._shm = shared_memory.SharedMemory(create=True, size=int(np.prod(self.shape)))
         self._pool = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"))
-        self._pool.submit(_warm_worker)
+        self._pool.submit(_warm_worker, *warm)
         # a tracker dropped without close(): the worker and the block go with it
         self._finalizer = weakref.finalize(self, _release_worker, self._pool, self._shm)
 
-    def submit(self, img: np.ndarray, *args) -> Future:
+    def submit(self, fn, img: np.ndarray, *args) -> Future:
+        """``fn(img, *args)`` in the worker (``fn`` a module-level function)."""
         if img.shape != self.shape or img.dtype != np.uint8:
             raise InputError(f"frame {img.shape} {img.dtype} is not the {self.shape} uint8 "
                              "frames of this tracker")
         np.ndarray(self.shape, np.uint8, buffer=self._shm.buf)[:] = img
-        return self._pool.submit(_band_fit_shared, self._shm.name, self.shape, *args)
+        return self._pool.submit(_run_shared, fn, self._shm.name, self.shape, *args)
 
     def shutdown(self, wait: bool = True, cancel_futures: bool = False) -> None:
         self._finalizer.detach()
@@ -451,6 +484,11 @@ class TrackParams:
     #: this many frames after the frame it was measured on (module doc, "Deferred
     #: re-anchors"); 0: on that frame itself, which then waits for the fit
     anchor_lag: int = 0
+    #: with ``anchor_lag > 0``, a frame the tracking cannot follow is measured in full beside
+    #: the tracking too (module doc, "Deferred fall-backs"): it and the frames before that
+    #: measurement's take-up ``anchor_lag`` frames on are answered at once without a pose,
+    #: instead of the next frames waiting ~250 ms for it; False: measured on the frame itself
+    defer_fallbacks: bool = True
     #: ``dm+b``: the offsets follow the view between anchors as the edge model says a broken
     #: edge of the band fit's radius images (module doc, "Broken edges"); False: a length on
     #: the holder, constant until the next anchor
@@ -491,7 +529,8 @@ class TrackResult:
     ----------
     frame : the frame's index (0-based, in the order given to the tracker).
     mode : ``"track"`` (predicted edges), ``"full"`` (the full measurement: first frame or a
-        fall-back) or ``"lost"`` (no pose).
+        fall-back) or ``"lost"`` (no pose; also a deferred fall-back's frames before its
+        take-up, module doc).
     pose : the raw per-frame pose (None when lost); ``std_dof`` its std per DOF (tracking
         with ``dm+b``: the fit's and the last anchor's in quadrature, module doc).
     ok : the pose passed the checks (tracking) or the verdict (full).
@@ -502,7 +541,8 @@ class TrackResult:
         ``edge_support`` the lowest inlier share of a seen edge.
     corners_px : (20, 2) corners, model order with NaN where an edge is not seen (tracking),
         or those of the full measurement.
-    measurement : the full measurement when one was made.
+    measurement : the full measurement when one was made (on the frame that takes up a
+        deferred fall-back: that of the frame it was started on).
     timings_ms : wall time per stage.
     """
 
@@ -657,11 +697,15 @@ class Tracker:
         self.filter = PoseFilter(self.tp.filter_alpha, self.tp.filter_beta, self.tp.gate_mm,
                                  self.tp.gate_deg) if filter else None
         self.reset()
-        if anchor_worker == "process" and self.tp.anchor_lag > 0 and method == "dm+b":
+        # the full measurement's outline templates (~190 ms for the approach's five depths,
+        # once per process): built now, before the first frame arrives
+        prepare_outline_search(self.camera, self.holder, self.params)
+        if anchor_worker == "process" and self.tp.anchor_lag > 0 and (
+                method == "dm+b" or self.tp.defer_fallbacks):
             # started now: the spawn and its imports (~1 s) run beside the first frame's full
             # measurement instead of delaying the first re-anchor
             w, h = self.camera.image_size_px
-            self._executor = AnchorProcess((h, w))
+            self._executor = AnchorProcess((h, w), self.camera, self.holder, self.params)
 
     def reset(self) -> None:
         """Forget the past: the next frame is measured in full."""
@@ -694,6 +738,11 @@ class Tracker:
         #: a deferred re-anchor: (frame to apply it on, its future, the measured frame's
         #: (index, tracked pose, std, lines, edges used))
         self._pending: tuple | None = None
+        #: a deferred fall-back: (frame to apply it on, the frame measured, its future, that
+        #: frame, the motion per frame before it (or None))
+        self._pending_full: tuple | None = None
+        #: the pose the next frame is tracked from (a deferred fall-back's, carried to it)
+        self._seed: Pose | None = None
         if self.filter is not None:
             self.filter.reset()
 
@@ -718,11 +767,22 @@ class Tracker:
         self._n += 1
         timings: dict[str, float] = {}
         reason = "first frame" if k == 0 else "no previous pose"
+        full = None   # a deferred fall-back's measurement, taken up on this frame
+        if self._pending_full is not None:
+            at, j = self._pending_full[:2]
+            if k < at:
+                return self._no_pose(k, f"full measurement of frame {j} pending (applied at "
+                                        f"frame {at})", None, timings, t0)
+            why, full = self._take_full(k, timings)
+            note_full = f"full measurement of frame {j} applied"
+            if why:
+                reason = why
         # a deferred re-anchor due on this frame is taken up before the frame is tracked
         why, note = self._take_anchor(k, timings) if self._last is not None else ("", "")
         if why:
             reason = why
         elif self._last is not None:
+            seeded = self._seed is not None
             try:
                 res = self._track(img, k, timings)
             except CutterposeError as e:
@@ -731,6 +791,10 @@ class Tracker:
             else:
                 if isinstance(res, str):
                     reason, res = res, None
+            self._seed = None
+            if res is not None and seeded:
+                res.measurement = full
+                note = "; ".join(filter(None, [note_full, note]))
             if res is not None:
                 res.anchor = note
                 # the offsets were measured at a pose with its own error, which every tracked
@@ -748,45 +812,108 @@ class Tracker:
                         if isinstance(res, str):
                             reason, res = res, None
             if res is not None:
-                self._prev, self._last = self._last, res.pose
+                # tracked from a deferred full measurement's pose, L frames old: the
+                # velocity is measured again from here on
+                self._prev, self._last = (None if seeded else self._last), res.pose
                 res.timings_ms = timings | {"total": (time.perf_counter() - t0) * 1e3}
-                self._filter(res, "")
+                self._filter(res, f"fall-back: {note_full}" if seeded else "")
                 return res
-        # full measurement (a pending re-anchor belongs to the poses before it)
+            if seeded:
+                reason = f"tracking after the {note_full}: {reason}"
+        # full measurement (a pending re-anchor belongs to the poses before it: a band fit
+        # still queued on the worker is not run, one running is left to finish unread)
+        if self._pending is not None:
+            self._pending[1].cancel()
         self._pending = None
+        if k > 0 and self.tp.anchor_lag > 0 and self.tp.defer_fallbacks:
+            return self._start_full(img, k, reason, timings, t0)
         t1 = time.perf_counter()
-        m = measure(img, self.camera, self.holder, self.method, self.params, self.limits,
-                    edge_look=self.edge_look, corners=True)
+        m = full_measurement(img, self.camera, self.holder, self.method, self.params,
+                             self.limits, self.edge_look)
         timings["full"] = (time.perf_counter() - t1) * 1e3
         self._prev = None   # the velocity is unknown after a fall-back
-        if m.ok:
-            # a method that refines dm+'s pose with more than the corners (dm+b: the design
-            # edge from the bands): the tracker follows the edges the corners come from (the
-            # innermost rise), so it measures here, at the measured design pose, how far
-            # each of them lies from the design edge (module doc, "Broken edges")
-            refines = get_method(self.method).base is not None
-            start = m.estimate.info.get("start") if refines and m.estimate else None
-            # the residual the tracked edges are held to: the corners' (dm+'s, for dm+b,
-            # which starts from the outline and fits no corners itself)
-            rms = start.residual_px if start is not None else m.quality.rms_px
-            if refines and not np.isfinite(rms) and m.features is not None:
-                rms = corner_residual_px(m.features, self.camera, self.holder, self.limits)
-            self._rms_ref = float(rms) if np.isfinite(rms) else 0.0
-            if refines:
-                self._anchor_full(img, k, m)
-            self._last = m.pose
-            res = TrackResult(k, "full", m.pose, m.std_dof, True, reason,
-                              rms_px=m.quality.rms_px, corners_px=m.corners_px, measurement=m)
-            self._filter(res, f"fall-back: {reason}" if k else "first pose")
-        else:
-            self._last = None
-            res = TrackResult(k, "lost", None, np.full(6, np.nan), False,
-                              f"{reason}; full measurement: {m.quality.reason}", measurement=m)
-            if self.filter is not None:
-                self.filter.reset()
-                res.filter_reset = "lost"
+        if not m.ok:
+            return self._no_pose(k, f"{reason}; full measurement: {m.quality.reason}", m,
+                                 timings, t0)
+        self._accept_full(img, k, m)
+        res = TrackResult(k, "full", m.pose, m.std_dof, True, reason,
+                          rms_px=m.quality.rms_px, corners_px=m.corners_px, measurement=m)
+        self._filter(res, f"fall-back: {reason}" if k else "first pose")
         res.timings_ms = timings | {"total": (time.perf_counter() - t0) * 1e3}
         return res
+
+    def _no_pose(self, k: int, reason: str, m: Measurement | None, timings: dict,
+                 t0: float) -> TrackResult:
+        """A frame without a pose ("lost"): the filter forgets its state."""
+        self._last = None
+        res = TrackResult(k, "lost", None, np.full(6, np.nan), False, reason, measurement=m)
+        if self.filter is not None:
+            self.filter.reset()
+            res.filter_reset = "lost"
+        res.timings_ms = timings | {"total": (time.perf_counter() - t0) * 1e3}
+        return res
+
+    def _accept_full(self, img: np.ndarray, k: int, m: Measurement) -> None:
+        """Start again from an accepted full measurement of frame ``k`` (``img``)."""
+        # a method that refines dm+'s pose with more than the corners (dm+b: the design
+        # edge from the bands): the tracker follows the edges the corners come from (the
+        # innermost rise), so it measures here, at the measured design pose, how far
+        # each of them lies from the design edge (module doc, "Broken edges")
+        refines = get_method(self.method).base is not None
+        start = m.estimate.info.get("start") if refines and m.estimate else None
+        # the residual the tracked edges are held to: the corners' (dm+'s, for dm+b,
+        # which starts from the outline and fits no corners itself)
+        rms = start.residual_px if start is not None else m.quality.rms_px
+        if refines and not np.isfinite(rms) and m.features is not None:
+            rms = corner_residual_px(m.features, self.camera, self.holder, self.limits)
+        self._rms_ref = float(rms) if np.isfinite(rms) else 0.0
+        if refines:
+            self._anchor_full(img, k, m)
+        self._last, self._prev = m.pose, None
+
+    # -- deferred fall-backs -------------------------------------------------------------
+    def _start_full(self, img: np.ndarray, k: int, reason: str, timings: dict,
+                    t0: float) -> TrackResult:
+        """A fall-back measured beside the tracking (module doc, "Deferred fall-backs"): this
+        frame and the next ``anchor_lag - 1`` are answered at once without a pose."""
+        at = k + self.tp.anchor_lag
+        # the motion per frame before the failure carries the measured pose to frame ``at``
+        vel = _relative(self._last, self._prev) if (self._last is not None
+                                                     and self._prev is not None) else None
+        fut = self._submit(full_measurement, img, self.camera, self.holder, self.method,
+                           self.params, self.limits, self.edge_look)
+        self._pending_full = (at, k, fut, np.array(img, copy=True), vel)
+        self._prev = None
+        return self._no_pose(k, f"{reason}; full measurement started (applied at frame "
+                                f"{at})", None, timings, t0)
+
+    def _take_full(self, k: int, timings: dict) -> tuple[str, Measurement | None]:
+        """Take up the deferred full measurement due on frame ``k`` (waiting for it):
+        ``("", measurement)`` with the tracker started again from its pose, carried to frame
+        ``k`` by the motion per frame before the failure (the frame is tracked from there), or
+        ``(reason for a new fall-back, measurement or None)``."""
+        _, j, fut, img_j, vel = self._pending_full
+        self._pending_full = None
+        t = time.perf_counter()
+        try:
+            m = fut.result()
+        except CutterposeError as e:
+            return f"full measurement (frame {j}): {type(e).__name__}: {e}", None
+        except BrokenProcessPool as e:
+            self.close()
+            return f"full measurement (frame {j}): the worker process failed ({e})", None
+        finally:
+            timings["full_wait"] = (time.perf_counter() - t) * 1e3
+        timings["full"] = float(m.timings_ms.get("total", math.nan))
+        if not m.ok:
+            return f"full measurement (frame {j}): {m.quality.reason}", m
+        self._accept_full(img_j, j, m)
+        pose = m.pose
+        if vel is not None:
+            for _ in range(k - j):
+                pose = _left(*vel, pose)
+        self._seed = pose
+        return "", m
 
     # -- broken edges: the tracked edges' offsets from the design edge --------------------
     def _anchor_full(self, img: np.ndarray, k: int, m: Measurement) -> None:
@@ -998,28 +1125,33 @@ class Tracker:
         self._attempts += 1
         lines, used = self._anchor_lines(res)
         lines, used = lines.copy(), used.copy()
-        if self.anchor_worker == "process":
-            if self._executor is not None and self._executor.shape != img.shape:
-                self.close()     # frames of another size than the camera's (a test's crop)
-            if self._executor is None:
-                self._executor = AnchorProcess(img.shape)
-            fut = self._executor.submit(img, *self._band_args(res.pose, used))
-        elif self.anchor_worker == "thread":
-            if self._executor is None:
-                self._executor = ThreadPoolExecutor(1, thread_name_prefix="cutterpose-anchor")
-            # the caller may reuse its frame buffer (a camera driver's): the thread reads a copy
-            fut = self._executor.submit(self._band_fit, np.array(img, copy=True), res.pose,
-                                        used)
-        else:
-            fut = Future()
-            try:
-                fut.set_result(self._band_fit(img, res.pose, used))
-            except CutterposeError as e:
-                fut.set_exception(e)
+        fut = self._submit(band_fit, img, *self._band_args(res.pose, used))
         at = res.frame + self.tp.anchor_lag
         self._pending = (at, fut, (res.frame, res.pose, res.std_dof.copy(), lines, used))
         res.anchor = "; ".join(filter(None, [res.anchor,
                                              f"re-anchor started (applied at frame {at})"]))
+
+    def _submit(self, fn, img: np.ndarray, *args) -> Future:
+        """``fn(img, *args)`` (:func:`band_fit` or :func:`full_measurement`) on the
+        ``anchor_worker``: its future."""
+        if self.anchor_worker == "process":
+            if self._executor is not None and self._executor.shape != img.shape:
+                self.close()     # frames of another size than the camera's (a test's crop)
+            if self._executor is None:
+                self._executor = AnchorProcess(img.shape, self.camera, self.holder,
+                                               self.params)
+            return self._executor.submit(fn, img, *args)
+        if self.anchor_worker == "thread":
+            if self._executor is None:
+                self._executor = ThreadPoolExecutor(1, thread_name_prefix="cutterpose-anchor")
+            # the caller may reuse its frame buffer (a camera driver's): the thread reads a copy
+            return self._executor.submit(fn, np.array(img, copy=True), *args)
+        fut = Future()
+        try:
+            fut.set_result(fn(img, *args))
+        except CutterposeError as e:
+            fut.set_exception(e)
+        return fut
 
     def _take_anchor(self, k: int, timings: dict) -> tuple[str, str]:
         """Take up the deferred re-anchor due on frame ``k`` (waiting for its band fit):
@@ -1051,6 +1183,8 @@ class Tracker:
 
     def predict(self) -> Pose | None:
         """The pose predicted for the next frame (constant velocity when known)."""
+        if self._seed is not None:
+            return self._seed
         if self._last is None:
             return None
         if self._prev is None:

@@ -7,6 +7,8 @@ Convention:
 
 from __future__ import annotations
 
+from collections import OrderedDict
+
 import cv2
 import numpy as np
 
@@ -106,7 +108,31 @@ def find_roi(image: np.ndarray, camera: Camera, holder: Holder, params: FeatureP
 
 # ------------------------------------------------------------------------------------------
 # field chain (issue 10): the pocket outline matched on gradient orientation
-_OUTLINE_CACHE: dict = {}
+class _Recent(OrderedDict):
+    """A bounded cache that forgets its least recently used entries. (Clearing it whole when
+    full, as before, rebuilt all 45 coarse templates of an approach's five depths on about
+    every other full measurement: ~190 ms of its ~250.)"""
+
+    def __init__(self, maxsize: int):
+        super().__init__()
+        self.maxsize = int(maxsize)
+
+    def recall(self, key):
+        """The entry of ``key`` (None when absent), marked as just used."""
+        if key not in self:
+            return None
+        self.move_to_end(key)
+        return self[key]
+
+    def keep(self, key, value) -> None:
+        self[key] = value
+        self.move_to_end(key)
+        while len(self) > self.maxsize:
+            self.popitem(last=False)
+
+
+#: templates are a few 10 kB (the outline's box at 1/8 or 1/16 scale): ~10 MB at most
+_OUTLINE_CACHE = _Recent(256)
 
 
 def _outline_template(camera: Camera, holder: Holder, downscale: int, gamma_deg: float,
@@ -118,8 +144,9 @@ def _outline_template(camera: Camera, holder: Holder, downscale: int, gamma_deg:
     homography plane (mm) -> ideal px of its pose and its number of outline pixels. Cached."""
     key = (repr(camera), holder.corners_mm.tobytes(), int(downscale), round(gamma_deg, 3),
            int(line_px), round(float(depth_mm), 3))
-    if key in _OUTLINE_CACHE:
-        return _OUTLINE_CACHE[key]
+    hit = _OUTLINE_CACHE.recall(key)
+    if hit is not None:
+        return hit
     s = float(downscale)
     P = holder.points_holder_mm
     pose = Pose.from_euler(0.0, 0.0, gamma_deg, 0.0, 0.0, float(depth_mm))
@@ -144,9 +171,7 @@ def _outline_template(camera: Camera, holder: Holder, downscale: int, gamma_deg:
                  val, int(line_px), cv2.LINE_8, 4)
     n_on = float(np.count_nonzero(np.abs(tpl).sum(axis=2)))
     out = (tpl, origin.astype(int), H / H[2, 2], n_on)
-    if len(_OUTLINE_CACHE) > 64:
-        _OUTLINE_CACHE.clear()
-    _OUTLINE_CACHE[key] = out
+    _OUTLINE_CACHE.keep(key, out)
     return out
 
 
@@ -173,7 +198,9 @@ def _orientation_field(img: np.ndarray) -> np.ndarray:
     return np.dstack([(gx * gx - gy * gy) * w, 2.0 * gx * gy * w]).astype(np.float32)
 
 
-_SPECTRUM_CACHE: dict = {}
+#: the coarse image's template spectra are ~0.4 MB each (45 for an approach), the fine
+#: windows' ~50 kB: <= ~40 MB
+_SPECTRUM_CACHE = _Recent(192)
 
 
 def correlate_templates(image: np.ndarray, templates: list) -> list:
@@ -192,16 +219,14 @@ def correlate_templates(image: np.ndarray, templates: list) -> list:
     shape = (fft.next_fast_len(h), fft.next_fast_len(w, real=True))
     # channels first: contiguous planes for the transforms and the products
     spec_img = fft.rfft2(np.moveaxis(image, -1, 0), s=shape, axes=(1, 2), workers=1)
-    if len(_SPECTRUM_CACHE) > 64:
-        _SPECTRUM_CACHE.clear()
     out = []
     for t in templates:
         key = (id(t), shape)
-        hit = _SPECTRUM_CACHE.get(key)
+        hit = _SPECTRUM_CACHE.recall(key)
         if hit is None or hit[0] is not t:   # the template kept in the entry: ids stay unique
             hit = (t, np.conj(fft.rfft2(np.moveaxis(t, -1, 0), s=shape, axes=(1, 2),
                                          workers=1)))
-            _SPECTRUM_CACHE[key] = hit
+            _SPECTRUM_CACHE.keep(key, hit)
         prod = spec_img[0] * hit[1][0]
         for ch in range(1, len(spec_img)):
             prod += spec_img[ch] * hit[1][ch]
@@ -209,6 +234,30 @@ def correlate_templates(image: np.ndarray, templates: list) -> list:
         out.append(np.ascontiguousarray(c[: h - t.shape[0] + 1, : w - t.shape[1] + 1],
                                         np.float32))
     return out
+
+
+def _coarse_templates(camera: Camera, holder: Holder, params: FeatureParams):
+    """The coarse stage's (turn, depth) pairs and templates: every turn at every depth (one
+    depth, the nominal 600 mm, unless an approach asks more), on the image reduced
+    ``2 roi_downscale`` times."""
+    gd = [(g, z) for z in params.roi_depths_mm for g in params.roi_gammas_deg]
+    return gd, [_outline_template(camera, holder, 2 * int(params.roi_downscale), g, 2, z)
+                for g, z in gd]
+
+
+def prepare_outline_search(camera: Camera, holder: Holder, params: FeatureParams) -> None:
+    """Build :func:`match_outline`'s coarse templates and their spectra for ``camera``'s
+    frames ahead of the first one (cached per process: ~190 ms for an approach's five depths,
+    :func:`~cutterpose.tracking.approach_params`), e.g. in a worker process that will measure
+    fall-backs. Nothing for the paper's chain (no outline search)."""
+    if params.chain != "field":
+        return
+    w, h = camera.image_size_px
+    s8 = int(params.roi_downscale)
+    coarse = np.zeros(((h // s8) // 2, (w // s8) // 2, 2), np.float32)
+    tpls = [t[0] for t in _coarse_templates(camera, holder, params)[1]]
+    if all(t.shape[0] <= coarse.shape[0] and t.shape[1] <= coarse.shape[1] for t in tpls):
+        correlate_templates(coarse, tpls)
 
 
 def match_outline(small: np.ndarray, camera: Camera, holder: Holder, params: FeatureParams):
@@ -239,9 +288,7 @@ def match_outline(small: np.ndarray, camera: Camera, holder: Holder, params: Fea
     coarse = cv2.resize(field, (field.shape[1] // 2, field.shape[0] // 2),
                         interpolation=cv2.INTER_AREA)
     best = None
-    # every turn at every depth (one depth, the nominal 600 mm, unless an approach asks more)
-    gd = [(g, z) for z in params.roi_depths_mm for g in params.roi_gammas_deg]
-    tpls = [_outline_template(camera, holder, 2 * s8, g, 2, z) for g, z in gd]
+    gd, tpls = _coarse_templates(camera, holder, params)
     for t in tpls:
         if t[0].shape[0] > coarse.shape[0] or t[0].shape[1] > coarse.shape[1]:
             raise FeatureError("the holder outline is larger than the image: check the camera "

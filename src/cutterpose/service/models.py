@@ -245,7 +245,9 @@ class TrackCreate(_Model):
     anchor_lag: int | None = Field(None, ge=0, le=30, description="dm+b: re-anchors (the band "
                                    "fit, ~200 ms) run beside the tracking and are applied this "
                                    "many frames later (0: on their frame, which then waits; "
-                                   "default: the tracker's).")
+                                   "default: the tracker's); > 0 also measures a frame the "
+                                   "tracker cannot follow beside it: that frame and those "
+                                   "before the take-up answer at once with mode 'lost'.")
 
 
 class TrackInfo(_Model):
