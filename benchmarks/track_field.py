@@ -177,11 +177,13 @@ def summary(name: str, rows: list[dict], truth: dict) -> None:
     started = [r for r in rows if r["reason"].endswith(")") and
                "full measurement started (applied at" in r["reason"]]
     pending = [r for r in rows if " pending (applied at frame" in r["reason"]]
+    meanwhile = [r for r in rows if " pending (applied at frame" in r["anchor"]]
     taken = [r for r in rows if np.isfinite(r["full_wait_ms"])]
     if started or pending:
         wait = np.array([r["full_wait_ms"] for r in taken])
-        print(f"  deferred fall-backs: started on {[r['frame'] for r in started]}, frames "
-              f"without a pose while pending {[r['frame'] for r in pending]}; taken up on "
+        print(f"  deferred fall-backs: started on {[r['frame'] for r in started]}; while "
+              f"pending tracked {[r['frame'] for r in meanwhile]}, without a pose "
+              f"{[r['frame'] for r in pending]}; taken up on "
               f"{[(r['frame'], r['mode']) for r in taken]}, waited for median "
               f"{np.median(wait) if len(wait) else np.nan:.1f} ms (max "
               f"{wait.max() if len(wait) else np.nan:.1f})")

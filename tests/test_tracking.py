@@ -445,10 +445,11 @@ def test_deferred_reanchor_that_disagrees_falls_back_on_take_up(changing_break, 
 
 
 def test_deferred_fall_back_is_applied_lag_frames_later_by_any_worker(sequence):
-    """``anchor_lag = 2``: the jump's frame is measured in full beside the tracking; it and the
-    next frame are answered at once without a pose (saying why and when), the frame after
-    tracks from that measurement's pose carried by the motion before the jump (and has it as
-    its ``measurement``), and the tracking goes on. The same poses with the measurement in a
+    """``anchor_lag = 2``: the jump's frame is measured in full beside the tracking and
+    answered at once without a pose (saying why and when); the next one is tracked from the
+    last pose meanwhile (here 30 mm off: no pose either); the frame after tracks from that
+    measurement's pose carried by the motion before the jump (and has it as its
+    ``measurement``), and the tracking goes on. The same poses with the measurement in a
     worker process, a thread, or inline."""
     from cutterpose.tracking import TrackParams
 
@@ -467,8 +468,9 @@ def test_deferred_fall_back_is_applied_lag_frames_later_by_any_worker(sequence):
     assert res[j].fallback_reason.endswith(f"full measurement started (applied at frame "
                                            f"{j + 2})"), res[j].fallback_reason
     assert "edges" in res[j].fallback_reason        # why tracking failed
-    assert res[j + 1].fallback_reason == (f"full measurement of frame {j} pending (applied "
-                                          f"at frame {j + 2})")
+    # the frame after the jump is tracked from the last pose meanwhile: 30 mm off, it fails
+    assert res[j + 1].fallback_reason.endswith(f"(full measurement of frame {j} pending "
+                                               f"(applied at frame {j + 2}))")
     assert res[j].timings_ms["total"] < 1e3 * 0.5 * res[j + 2].measurement.timings_ms[
         "total"] + 50.0   # not waiting for the measurement
     r = res[j + 2]
@@ -605,3 +607,55 @@ def test_an_edge_without_a_measured_offset_counts_by_its_direction():
                           edges_used=at_anchor)
     lines, used = tr._anchor_lines(res)
     assert used.all()
+
+
+def test_frames_after_a_deferred_fall_back_are_tracked_while_it_is_pending(sequence,
+                                                                        monkeypatch):
+    """``anchor_lag = 2``, frame 2 not tracked: it is measured beside the tracking and has no
+    pose; frame 3 is tracked from the last pose meanwhile (over the gap, with the motion per
+    frame); on frame 4 the measurement is applied (the offsets; ``dm+`` has none) and the
+    tracking goes on from frame 3's pose. Frame 2 half covered instead: its full measurement
+    is refused too, and frame 4 says so and goes on tracking."""
+    import cv2
+
+    from cutterpose.tracking import TrackParams
+
+    d, truth = sequence
+    imgs = [cv2.imread(str(d / e["file"]), cv2.IMREAD_GRAYSCALE) for e in truth["images"][:6]]
+
+    def run(images):
+        with Tracker(CAM, default_holder(), "dm+", limits=SHARP, anchor_worker="inline",
+                     track=TrackParams(anchor_lag=2)) as tracker:
+            out = [tracker.update(im) for im in images]
+        assert [r.mode for r in out] == ["full", "track", "lost", "track", "track", "track"], \
+            [(r.mode, r.fallback_reason) for r in out]
+        assert out[2].fallback_reason.endswith("full measurement started (applied at frame 4)")
+        assert out[3].anchor == "full measurement of frame 2 pending (applied at frame 4)"
+        assert out[3].measurement is None
+        for r, e in zip(out, truth["images"]):
+            if r.mode == "track":
+                err = pose_errors(np.array(e["R_cam_holder"]), np.array(e["t_cam_holder_mm"]),
+                                  r.pose.R, r.pose.t_mm).dof[0]
+                assert np.all(np.abs(err[3:]) < 0.5) and np.all(np.abs(err[:3]) < 0.2), \
+                    (r.frame, err)
+        return out
+
+    track = Tracker._track
+
+    def fails_on_frame_2(self, img, k, timings):
+        return "forced" if k == 2 else track(self, img, k, timings)
+
+    with monkeypatch.context() as mp:
+        mp.setattr(Tracker, "_track", fails_on_frame_2)
+        res = run(imgs)
+    assert res[2].fallback_reason.startswith("forced")
+    assert res[4].anchor == "full measurement of frame 2 applied"
+    assert res[4].measurement is not None and res[4].measurement.ok
+    c = np.array(truth["images"][2]["corners_px"])
+    covered = list(imgs)
+    covered[2] = imgs[2].copy()
+    covered[2][:, int(np.median(c[:, 0])):] = 90
+    res = run(covered)
+    assert "edges" in res[2].fallback_reason
+    assert res[4].anchor.startswith("full measurement of frame 2 not applied (")
+    assert res[4].measurement is not None and not res[4].measurement.ok

@@ -606,8 +606,8 @@ def track_cmd(
                                    "(~200 ms) beside the tracking and apply them this many "
                                    "frames later (0: on their frame, which waits; default: "
                                    "the tracker's); > 0 also measures a frame tracking "
-                                   "cannot follow beside it (that frame and those before the "
-                                   "take-up have no pose, and say so)."),
+                                   "cannot follow beside it (that frame has no pose and says "
+                                   "so; the next ones are tracked meanwhile)."),
 ):
     """Track the holder through a sequence: edges predicted from the previous pose, the full
     measurement on the first frame and whenever tracking fails (said per frame)."""

@@ -107,16 +107,19 @@ length on the holder; then the fitted pose is the design edge's directly.
 * **deferred fall-backs** (``anchor_lag = L > 0`` and ``TrackParams.defer_fallbacks``, the
   default then): a frame ``j`` the tracking cannot follow needs a full measurement (~250 ms
   on a worn holder), which would put the next two or three frames of a 10 fps camera behind.
-  It runs on the same worker instead; frame ``j`` is answered at once without a pose
-  (``"lost"``, the reason and "full measurement started (applied at frame j + L)"), and so
-  are the frames up to ``j + L`` ("pending"). At ``j + L`` the measurement is taken up as an
-  inline one would be (the offsets from frame ``j``'s edges at its pose), its pose carried
-  to frame ``j + L`` by the motion per frame before the failure, and frame ``j + L`` is
-  tracked from there (the wider band of an unknown velocity; ``TrackResult.measurement`` is
-  frame ``j``'s, ``anchor`` says "full measurement of frame j applied"). A refused
-  measurement or a frame that cannot be tracked from it starts the next one. The frames
-  are fixed, so the poses do not depend on the worker or the machine's speed. The first
-  frame is always measured on the spot (there is nothing to track from).
+  It runs on the same worker instead, and frame ``j`` is answered at once without a pose
+  (``"lost"``, the reason and "full measurement started (applied at frame j + L)"). The
+  frames up to ``j + L`` are tracked meanwhile from the last pose (moved on by the motion per
+  frame over the gap; ``anchor`` says "full measurement of frame j pending"), or have no pose
+  when that fails too; no re-anchor starts while it is pending. At ``j + L`` the measurement
+  is taken up as an inline one would be (the offsets from frame ``j``'s edges at its pose;
+  ``TrackResult.measurement`` is frame ``j``'s, ``anchor`` says "full measurement of frame j
+  applied"), and frame ``j + L`` is tracked from the last tracked pose if there is one since
+  ``j``, else from the measured pose carried to it by the motion per frame before the
+  failure. A refused measurement is said ("not applied") and the tracking goes on, or, with
+  no pose since ``j``, the next measurement starts. The frames are fixed, so the poses do not
+  depend on the worker or the machine's speed. The first frame is always measured on the
+  spot (there is nothing to track from).
 
 ``method="dm+"`` tracks the design model itself (no offsets, no re-anchoring): right for a
 sharp edge (declare it, ``QualityLimits.edge_break_mm = 0``; otherwise its verdict carries a
@@ -485,9 +488,10 @@ class TrackParams:
     #: re-anchors"); 0: on that frame itself, which then waits for the fit
     anchor_lag: int = 0
     #: with ``anchor_lag > 0``, a frame the tracking cannot follow is measured in full beside
-    #: the tracking too (module doc, "Deferred fall-backs"): it and the frames before that
-    #: measurement's take-up ``anchor_lag`` frames on are answered at once without a pose,
-    #: instead of the next frames waiting ~250 ms for it; False: measured on the frame itself
+    #: the tracking too (module doc, "Deferred fall-backs"): it is answered at once without a
+    #: pose, the next ones are tracked from the last pose until the measurement is applied
+    #: ``anchor_lag`` frames on, instead of waiting ~250 ms for it; False: measured on the
+    #: frame itself
     defer_fallbacks: bool = True
     #: ``dm+b``: the offsets follow the view between anchors as the edge model says a broken
     #: edge of the band fit's radius images (module doc, "Broken edges"); False: a length on
@@ -529,8 +533,7 @@ class TrackResult:
     ----------
     frame : the frame's index (0-based, in the order given to the tracker).
     mode : ``"track"`` (predicted edges), ``"full"`` (the full measurement: first frame or a
-        fall-back) or ``"lost"`` (no pose; also a deferred fall-back's frames before its
-        take-up, module doc).
+        fall-back) or ``"lost"`` (no pose; also a deferred fall-back's frame, module doc).
     pose : the raw per-frame pose (None when lost); ``std_dof`` its std per DOF (tracking
         with ``dm+b``: the fit's and the last anchor's in quadrature, module doc).
     ok : the pose passed the checks (tracking) or the verdict (full).
@@ -732,17 +735,17 @@ class Tracker:
         self._anchors = 0   # measurements of the offsets since the last full measurement
         self._attempts = 0  # re-anchors tried since then
         self._last: Pose | None = None
-        self._prev: Pose | None = None   # the pose before _last, when both were consecutive
+        self._last_k = -1   # its frame
+        #: the motion per frame (R, t) that carries _last on (None: not known)
+        self._vel: tuple | None = None
         self._rms_ref = 0.0   # corner RMS of the last accepted full measurement (px)
         self._n = 0
         #: a deferred re-anchor: (frame to apply it on, its future, the measured frame's
         #: (index, tracked pose, std, lines, edges used))
         self._pending: tuple | None = None
         #: a deferred fall-back: (frame to apply it on, the frame measured, its future, that
-        #: frame, the motion per frame before it (or None))
+        #: frame, the last pose before it, that pose's frame, the motion per frame then)
         self._pending_full: tuple | None = None
-        #: the pose the next frame is tracked from (a deferred fall-back's, carried to it)
-        self._seed: Pose | None = None
         if self.filter is not None:
             self.filter.reset()
 
@@ -767,22 +770,27 @@ class Tracker:
         self._n += 1
         timings: dict[str, float] = {}
         reason = "first frame" if k == 0 else "no previous pose"
-        full = None   # a deferred fall-back's measurement, taken up on this frame
-        if self._pending_full is not None:
-            at, j = self._pending_full[:2]
-            if k < at:
-                return self._no_pose(k, f"full measurement of frame {j} pending (applied at "
-                                        f"frame {at})", None, timings, t0)
+        # a deferred fall-back (module doc): taken up on its frame, pending before it
+        full, note_full, fresh = None, "", False
+        if self._pending_full is not None and k >= self._pending_full[0]:
+            j = self._pending_full[1]
             why, full = self._take_full(k, timings)
-            note_full = f"full measurement of frame {j} applied"
-            if why:
-                reason = why
+            if not why:
+                note_full, fresh = f"full measurement of frame {j} applied", True
+            elif self._last is not None and self._last_k > j:
+                # tracked since frame j: the tracking goes on with the offsets it has
+                note_full = f"full measurement of frame {j} not applied ({why})"
+            else:
+                self._last, reason = None, why
+        pending = self._pending_full
+        if pending is not None:
+            note_full = (f"full measurement of frame {pending[1]} pending (applied at frame "
+                         f"{pending[0]})")
         # a deferred re-anchor due on this frame is taken up before the frame is tracked
         why, note = self._take_anchor(k, timings) if self._last is not None else ("", "")
         if why:
             reason = why
         elif self._last is not None:
-            seeded = self._seed is not None
             try:
                 res = self._track(img, k, timings)
             except CutterposeError as e:
@@ -791,12 +799,9 @@ class Tracker:
             else:
                 if isinstance(res, str):
                     reason, res = res, None
-            self._seed = None
-            if res is not None and seeded:
-                res.measurement = full
-                note = "; ".join(filter(None, [note_full, note]))
             if res is not None:
-                res.anchor = note
+                res.anchor = "; ".join(filter(None, [note_full, note]))
+                res.measurement = full
                 # the offsets were measured at a pose with its own error, which every tracked
                 # pose inherits (zero without offsets)
                 if self._offset_mm is not None:
@@ -812,14 +817,16 @@ class Tracker:
                         if isinstance(res, str):
                             reason, res = res, None
             if res is not None:
-                # tracked from a deferred full measurement's pose, L frames old: the
-                # velocity is measured again from here on
-                self._prev, self._last = (None if seeded else self._last), res.pose
+                self._moved_to(res.pose, k)
                 res.timings_ms = timings | {"total": (time.perf_counter() - t0) * 1e3}
-                self._filter(res, f"fall-back: {note_full}" if seeded else "")
+                self._filter(res, f"fall-back: {note_full}" if fresh else "")
                 return res
-            if seeded:
-                reason = f"tracking after the {note_full}: {reason}"
+            if note_full:
+                reason = f"tracking after the {note_full}: {reason}" if fresh else \
+                    f"{reason} ({note_full})"
+        if pending is not None:
+            # its full measurement is on its way: this frame goes without a pose
+            return self._no_pose(k, reason, None, timings, t0, forget=False)
         # full measurement (a pending re-anchor belongs to the poses before it: a band fit
         # still queued on the worker is not run, one running is left to finish unread)
         if self._pending is not None:
@@ -831,7 +838,6 @@ class Tracker:
         m = full_measurement(img, self.camera, self.holder, self.method, self.params,
                              self.limits, self.edge_look)
         timings["full"] = (time.perf_counter() - t1) * 1e3
-        self._prev = None   # the velocity is unknown after a fall-back
         if not m.ok:
             return self._no_pose(k, f"{reason}; full measurement: {m.quality.reason}", m,
                                  timings, t0)
@@ -842,10 +848,22 @@ class Tracker:
         res.timings_ms = timings | {"total": (time.perf_counter() - t0) * 1e3}
         return res
 
+    def _moved_to(self, pose: Pose, k: int) -> None:
+        """``pose`` on frame ``k`` is the last one; the motion per frame from the one before
+        (over a gap of frames without a pose: the same twist each frame)."""
+        if self._last is not None and k > self._last_k:
+            R, t = _relative(pose, self._last)
+            gap = k - self._last_k
+            self._vel = (R, t) if gap == 1 else se3_exp(se3_log(R, t) / gap)
+        self._last, self._last_k = pose, k
+
     def _no_pose(self, k: int, reason: str, m: Measurement | None, timings: dict,
-                 t0: float) -> TrackResult:
-        """A frame without a pose ("lost"): the filter forgets its state."""
-        self._last = None
+                 t0: float, forget: bool = True) -> TrackResult:
+        """A frame without a pose ("lost"): the filter forgets its state, and with ``forget``
+        the tracker its last pose (without: a deferred fall-back is on its way, and the next
+        frames are tracked from the last pose meanwhile)."""
+        if forget:
+            self._last = None
         res = TrackResult(k, "lost", None, np.full(6, np.nan), False, reason, measurement=m)
         if self.filter is not None:
             self.filter.reset()
@@ -854,7 +872,8 @@ class Tracker:
         return res
 
     def _accept_full(self, img: np.ndarray, k: int, m: Measurement) -> None:
-        """Start again from an accepted full measurement of frame ``k`` (``img``)."""
+        """Start again from an accepted full measurement of frame ``k`` (``img``): its pose,
+        the velocity unknown."""
         # a method that refines dm+'s pose with more than the corners (dm+b: the design
         # edge from the bands): the tracker follows the edges the corners come from (the
         # innermost rise), so it measures here, at the measured design pose, how far
@@ -869,30 +888,31 @@ class Tracker:
         self._rms_ref = float(rms) if np.isfinite(rms) else 0.0
         if refines:
             self._anchor_full(img, k, m)
-        self._last, self._prev = m.pose, None
+        self._last, self._last_k, self._vel = m.pose, k, None
 
     # -- deferred fall-backs -------------------------------------------------------------
     def _start_full(self, img: np.ndarray, k: int, reason: str, timings: dict,
                     t0: float) -> TrackResult:
         """A fall-back measured beside the tracking (module doc, "Deferred fall-backs"): this
-        frame and the next ``anchor_lag - 1`` are answered at once without a pose."""
+        frame is answered at once without a pose, the next ones are tracked from the last
+        pose meanwhile."""
         at = k + self.tp.anchor_lag
-        # the motion per frame before the failure carries the measured pose to frame ``at``
-        vel = _relative(self._last, self._prev) if (self._last is not None
-                                                     and self._prev is not None) else None
         fut = self._submit(full_measurement, img, self.camera, self.holder, self.method,
                            self.params, self.limits, self.edge_look)
-        self._pending_full = (at, k, fut, np.array(img, copy=True), vel)
-        self._prev = None
+        # the last pose and motion before the failure carry the measured pose to frame ``at``
+        self._pending_full = (at, k, fut, np.array(img, copy=True), self._last, self._last_k,
+                              self._vel)
         return self._no_pose(k, f"{reason}; full measurement started (applied at frame "
-                                f"{at})", None, timings, t0)
+                                f"{at})", None, timings, t0, forget=False)
 
     def _take_full(self, k: int, timings: dict) -> tuple[str, Measurement | None]:
         """Take up the deferred full measurement due on frame ``k`` (waiting for it):
-        ``("", measurement)`` with the tracker started again from its pose, carried to frame
-        ``k`` by the motion per frame before the failure (the frame is tracked from there), or
-        ``(reason for a new fall-back, measurement or None)``."""
-        _, j, fut, img_j, vel = self._pending_full
+        ``("", measurement)`` with the offsets measured from its frame at its pose, and the
+        frame tracked from the last tracked pose if there is one since, else from the
+        measured pose carried to it by the motion per frame before the failure (or, unknown,
+        from the last pose before it to the measured one); or ``(reason, measurement or
+        None)`` when it cannot be applied."""
+        _, j, fut, img_j, last, last_k, vel = self._pending_full
         self._pending_full = None
         t = time.perf_counter()
         try:
@@ -907,12 +927,17 @@ class Tracker:
         timings["full"] = float(m.timings_ms.get("total", math.nan))
         if not m.ok:
             return f"full measurement (frame {j}): {m.quality.reason}", m
+        since = (self._last, self._last_k, self._vel) if (
+            self._last is not None and self._last_k > j) else None
         self._accept_full(img_j, j, m)
-        pose = m.pose
-        if vel is not None:
-            for _ in range(k - j):
-                pose = _left(*vel, pose)
-        self._seed = pose
+        if since is not None:
+            self._last, self._last_k, self._vel = since
+        elif vel is not None:
+            self._vel = vel
+        elif last is not None and j > last_k:
+            self._vel = _relative(m.pose, last)
+            if j - last_k > 1:
+                self._vel = se3_exp(se3_log(*self._vel) / (j - last_k))
         return "", m
 
     # -- broken edges: the tracked edges' offsets from the design edge --------------------
@@ -921,7 +946,7 @@ class Tracker:
         measured design pose (the innermost rise of a broken edge, as tracking will see it).
         When those edges fail tracking's checks, the previous offsets (or none) are kept and
         the next tracked frame measures them again."""
-        self._last, self._prev = m.pose, None
+        self._last, self._last_k, self._vel = m.pose, k, None
         self._set_view_model(m.edge_band)
         try:
             res = self._track(img, k, {})
@@ -936,7 +961,8 @@ class Tracker:
     def _anchor_due(self, pose: Pose, k: int) -> bool:
         """A re-anchor on this tracked frame (``dm+b`` only: its band fit needs nothing but
         the image and a close pose)?"""
-        if self.method != "dm+b" or self._pending is not None:
+        if self.method != "dm+b" or self._pending is not None or \
+                self._pending_full is not None:
             return False
         tp = self.tp
         if self._anchor_t_mm is None or self._attempts < tp.anchor_warmup:
@@ -1181,16 +1207,17 @@ class Tracker:
         if self.filter is not None and res.pose is not None:
             res.filtered_pose, res.filter_reset = self.filter.update(res.pose, force)
 
-    def predict(self) -> Pose | None:
-        """The pose predicted for the next frame (constant velocity when known)."""
-        if self._seed is not None:
-            return self._seed
+    def predict(self, k: int | None = None) -> Pose | None:
+        """The pose predicted for frame ``k`` (default: the next one): the last pose moved on
+        by the motion per frame once per frame since, when that motion is known."""
         if self._last is None:
             return None
-        if self._prev is None:
-            return self._last
-        R, t = _relative(self._last, self._prev)
-        return _left(R, t, self._last)
+        k = self._n if k is None else k
+        pose = self._last
+        if self._vel is not None:
+            for _ in range(max(k - self._last_k, 0)):
+                pose = _left(*self._vel, pose)
+        return pose
 
     def _project(self, pose: Pose) -> np.ndarray | None:
         """The model corners projected with ``pose`` (ideal px, holder order); None if the
@@ -1227,11 +1254,12 @@ class Tracker:
 
         tp = self.tp
         n = len(self._model_mm)
-        pose = self.predict()
+        pose = self.predict(k)
         self._follow_view(pose)
-        # no velocity yet (second frame, after a fall-back): the frame's motion is not
-        # predicted, a wider band covers it
-        hw = tp.band_half_width_px * (tp.cold_band_factor if self._prev is None else 1.0)
+        # no velocity yet (second frame, after a fall-back) or frames without a pose since
+        # the last: the frame's motion is not well predicted, a wider band covers it
+        cold = self._vel is None
+        hw = tp.band_half_width_px * (tp.cold_band_factor if cold else 1.0)
         passes = dropped = 0
         for _ in range(tp.max_passes):
             passes += 1

@@ -246,8 +246,9 @@ class TrackCreate(_Model):
                                    "fit, ~200 ms) run beside the tracking and are applied this "
                                    "many frames later (0: on their frame, which then waits; "
                                    "default: the tracker's); > 0 also measures a frame the "
-                                   "tracker cannot follow beside it: that frame and those "
-                                   "before the take-up answer at once with mode 'lost'.")
+                                   "tracker cannot follow beside it: that frame answers at "
+                                   "once with mode 'lost', the next ones are tracked "
+                                   "meanwhile.")
 
 
 class TrackInfo(_Model):
