@@ -131,6 +131,21 @@ def test_track_cli_json_lines(sequence):
     assert "tracked" in r.stderr
 
 
+def test_track_cli_defers_the_fall_back_with_an_anchor_lag(sequence):
+    """``--anchor-lag 2``: the jump's frame has no pose and says when its measurement is
+    applied; the summary counts it."""
+    d, truth = sequence
+    r = runner.invoke(app, ["track", str(d), "--camera", str(d / "cam.json"), "--json-lines",
+                            "--method", "dm+", "--edge-break-mm", "0", "--anchor-lag", "2"])
+    assert r.exit_code == 0, r.output
+    lines = [json.loads(x) for x in r.stdout.splitlines() if x.startswith("{")]
+    j = [e["frame"] for e in truth["images"]].index(JUMP)
+    assert lines[j]["mode"] == "lost" and lines[j]["pose"] is None
+    assert lines[j]["fallback_reason"].endswith(f"(applied at frame {j + 2})")
+    assert lines[j + 2]["anchor"] == f"full measurement of frame {j} applied"
+    assert "1 fall-backs measured beside the tracking" in r.stderr, r.stderr
+
+
 def test_track_cli_bad_source(tmp_path):
     r = runner.invoke(app, ["track", str(tmp_path)])
     assert r.exit_code == 2 and "no frames" in r.output
@@ -384,6 +399,8 @@ def test_deferred_reanchor_is_applied_lag_frames_later_by_any_worker(changing_br
     for worker in ("process", "thread", "inline"):
         with Tracker(cam, hol, method="dm+b", params=params, anchor_worker=worker,
                      track=TrackParams(anchor_gain=1.0, anchor_lag=2)) as tracker:
+            assert tracker.ready(60.0)          # the worker process started (or none)
+            assert (tracker._executor is not None) == (worker == "process")
             out[worker] = [tracker.update(f) for f in frames]
         assert tracker._executor is None                      # closed by the with block
     with pytest.raises(InputError):
@@ -613,9 +630,10 @@ def test_frames_after_a_deferred_fall_back_are_tracked_while_it_is_pending(seque
                                                                         monkeypatch):
     """``anchor_lag = 2``, frame 2 not tracked: it is measured beside the tracking and has no
     pose; frame 3 is tracked from the last pose meanwhile (over the gap, with the motion per
-    frame); on frame 4 the measurement is applied (the offsets; ``dm+`` has none) and the
-    tracking goes on from frame 3's pose. Frame 2 half covered instead: its full measurement
-    is refused too, and frame 4 says so and goes on tracking."""
+    frame); on frame 4 the measurement is applied (the offsets; ``dm+`` has none) and frame
+    4 is tracked from frame 2's measured pose carried on by frame 3's motion. Frame 2 half
+    covered instead: its full measurement is refused too, and frame 4 says so and goes on
+    tracking from frame 3."""
     import cv2
 
     from cutterpose.tracking import TrackParams

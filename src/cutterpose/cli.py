@@ -626,16 +626,18 @@ def track_cmd(
     tracker = Tracker(cam, load_holder(holder) if holder else None, method, limits=limits,
                       filter=filter_, edge_look=look, track=tp)
     size = parse_raw_size(raw) if raw else None
-    modes, times, anchors = {}, [], 0
+    modes, times, anchors, beside = {}, [], 0, 0
     with tracker:
         results = ((name, tracker.update(frame)) for name, frame in _frames(source, size))
         for name, r in results:
             _track_line(r, name, modes, times, json_lines)
             anchors += r.anchor.startswith("re-anchored")
+            beside += "full measurement started (applied at frame" in r.fallback_reason
     med = f", tracking median {np.median(times):.1f} ms/frame" if times else ""
     log(f"{sum(modes.values())} frames: {modes.get('track', 0)} tracked, "
         f"{modes.get('full', 0)} full measurements (first + fall-backs), "
         f"{modes.get('lost', 0)} lost{med}"
+        + (f"; {beside} fall-backs measured beside the tracking" if beside else "")
         + (f"; {anchors} re-anchored (band fit)" if anchors else ""))
 
 

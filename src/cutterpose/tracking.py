@@ -114,9 +114,10 @@ length on the holder; then the fitted pose is the design edge's directly.
   when that fails too; no re-anchor starts while it is pending. At ``j + L`` the measurement
   is taken up as an inline one would be (the offsets from frame ``j``'s edges at its pose;
   ``TrackResult.measurement`` is frame ``j``'s, ``anchor`` says "full measurement of frame j
-  applied"), and frame ``j + L`` is tracked from the last tracked pose if there is one since
-  ``j``, else from the measured pose carried to it by the motion per frame before the
-  failure. A refused measurement is said ("not applied") and the tracking goes on, or, with
+  applied"), and frame ``j + L`` is tracked from the measured pose carried to it by the
+  motion per frame of the poses tracked since ``j`` (or before the failure). Not from the
+  last tracked pose: it rests on the offsets before, and with the new ones it is off by
+  their change. A refused measurement is said ("not applied") and the tracking goes on, or, with
   no pose since ``j``, the next measurement starts. The frames are fixed, so the poses do not
   depend on the worker or the machine's speed. The first frame is always measured on the
   spot (there is nothing to track from).
@@ -295,7 +296,7 @@ class AnchorProcess:
         self.shape = tuple(shape)
         self._shm = shared_memory.SharedMemory(create=True, size=int(np.prod(self.shape)))
         self._pool = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"))
-        self._pool.submit(_warm_worker, *warm)
+        self.warm = self._pool.submit(_warm_worker, *warm)
         # a tracker dropped without close(): the worker and the block go with it
         self._finalizer = weakref.finalize(self, _release_worker, self._pool, self._shm)
 
@@ -738,6 +739,7 @@ class Tracker:
         self._last_k = -1   # its frame
         #: the motion per frame (R, t) that carries _last on (None: not known)
         self._vel: tuple | None = None
+        self._after_full = False   # no frame tracked since the last full measurement
         self._rms_ref = 0.0   # corner RMS of the last accepted full measurement (px)
         self._n = 0
         #: a deferred re-anchor: (frame to apply it on, its future, the measured frame's
@@ -748,6 +750,22 @@ class Tracker:
         self._pending_full: tuple | None = None
         if self.filter is not None:
             self.filter.reset()
+
+    def ready(self, timeout_s: float | None = None) -> bool:
+        """Wait until the worker process (``anchor_worker="process"`` with ``anchor_lag > 0``)
+        has started and imported what it runs (~1-2 s after the tracker was made): call it
+        before the approach begins, so that the first deferred job does not queue behind the
+        start-up. True when ready (at once without a worker process); False after
+        ``timeout_s``, or when the worker failed to start (its jobs then fail and fall back
+        with the reason)."""
+        warm = getattr(self._executor, "warm", None)
+        if warm is None:
+            return True
+        try:
+            warm.result(timeout_s)
+        except Exception:  # noqa: BLE001 - a timeout or a dead worker: not ready
+            return False
+        return True
 
     def close(self) -> None:
         """End the deferred re-anchors' worker (process or thread), if one was started."""
@@ -856,6 +874,7 @@ class Tracker:
             gap = k - self._last_k
             self._vel = (R, t) if gap == 1 else se3_exp(se3_log(R, t) / gap)
         self._last, self._last_k = pose, k
+        self._after_full = False
 
     def _no_pose(self, k: int, reason: str, m: Measurement | None, timings: dict,
                  t0: float, forget: bool = True) -> TrackResult:
@@ -889,6 +908,7 @@ class Tracker:
         if refines:
             self._anchor_full(img, k, m)
         self._last, self._last_k, self._vel = m.pose, k, None
+        self._after_full = True
 
     # -- deferred fall-backs -------------------------------------------------------------
     def _start_full(self, img: np.ndarray, k: int, reason: str, timings: dict,
@@ -908,10 +928,9 @@ class Tracker:
     def _take_full(self, k: int, timings: dict) -> tuple[str, Measurement | None]:
         """Take up the deferred full measurement due on frame ``k`` (waiting for it):
         ``("", measurement)`` with the offsets measured from its frame at its pose, and the
-        frame tracked from the last tracked pose if there is one since, else from the
-        measured pose carried to it by the motion per frame before the failure (or, unknown,
-        from the last pose before it to the measured one); or ``(reason, measurement or
-        None)`` when it cannot be applied."""
+        frame tracked from that pose carried to it by the motion per frame of the poses
+        tracked since (or before the failure; or, unknown, from the last pose before it to
+        the measured one); or ``(reason, measurement or None)`` when it cannot be applied."""
         _, j, fut, img_j, last, last_k, vel = self._pending_full
         self._pending_full = None
         t = time.perf_counter()
@@ -927,11 +946,13 @@ class Tracker:
         timings["full"] = float(m.timings_ms.get("total", math.nan))
         if not m.ok:
             return f"full measurement (frame {j}): {m.quality.reason}", m
-        since = (self._last, self._last_k, self._vel) if (
-            self._last is not None and self._last_k > j) else None
+        # the poses tracked since frame j rest on the offsets before it: their motion per
+        # frame carries the measured pose (a pose of theirs with the new offsets would be
+        # off by the offsets' change: 2-3 px on worn holders)
+        since = self._vel if self._last is not None and self._last_k > j else None
         self._accept_full(img_j, j, m)
         if since is not None:
-            self._last, self._last_k, self._vel = since
+            self._vel = since
         elif vel is not None:
             self._vel = vel
         elif last is not None and j > last_k:
@@ -1256,9 +1277,10 @@ class Tracker:
         n = len(self._model_mm)
         pose = self.predict(k)
         self._follow_view(pose)
-        # no velocity yet (second frame, after a fall-back) or frames without a pose since
-        # the last: the frame's motion is not well predicted, a wider band covers it
-        cold = self._vel is None
+        # no velocity yet (second frame), or the first frame after a full measurement (its
+        # offsets are new; one edge may still sit ~2-3 px off a worn holder's model): a
+        # wider band, and its wider centring limit
+        cold = self._vel is None or self._after_full
         hw = tp.band_half_width_px * (tp.cold_band_factor if cold else 1.0)
         passes = dropped = 0
         for _ in range(tp.max_passes):
