@@ -750,7 +750,8 @@ def measure(image, camera: Camera | None = None, holder: Holder | None = None,
         8-bit frame buffer of the camera's size (bytes, bytearray, memoryview: used in place,
         no decode), or a grey/colour array of the camera's size (:mod:`cutterpose.frames`).
     camera, holder : defaults: the Table 1 camera and ``holder.json``.
-    method : a registered pose method (``dm+r`` by default: ``dm+`` and the edge radius; the
+    method : a registered pose method (``dm+b`` by default: the design edge located in the
+        bands across the broken pocket edge, from ``dm+``'s or the outline's start; the
         paper's method is ``dm`` / ``dm-paper`` with ``FeatureParams.paper()``).
     params : image processing parameters (default: the field chain,
         ``FeatureParams.for_camera(camera)``; ``FeatureParams.paper()`` for section 2.1's).
