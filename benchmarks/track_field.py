@@ -19,7 +19,10 @@ answered later than ``1 / F`` after arrival are counted. ``--track anchor_lag=3`
 ``dm+b`` re-anchors (their band fits in a worker process; ``--anchor-worker thread`` or
 ``inline``: in a thread, or on the frame itself; the same poses); the tracker's CPU time is
 then its own thread's. The clock starts when the tracker is ready (``Tracker.ready``: its
-worker process started), as a live tracker is made before the approach begins.
+worker process started), as a live tracker is made before the approach begins. ``--newest``
+plays a camera driver that drops stale frames instead of queueing them: when the tracker is
+free it gets the newest frame that has arrived (with its time, ``update(..., t_s=)``), and
+the ones before it are skipped (counted).
 
 A tracked frame is *within the band* when every DOF's error (against the truth) is at most 3
 std of the full measurement; where the full measurement refused the frame, the std of the
@@ -61,7 +64,8 @@ cv2.setNumThreads(1)
 
 def run(seq: Path, with_full: bool = True, track: TrackParams | None = None,
         method: str = "dm+b", edge_look=None, edge_break_mm: float | None = None,
-        fps: float | None = None, anchor_worker: str = "process") -> list[dict]:
+        fps: float | None = None, anchor_worker: str = "process",
+        newest: bool = False) -> list[dict]:
     truth = json.loads((seq / "truth.json").read_text())
     camera = camera_from_dict(truth["camera"])
     holder = holder_from_dict(truth["holder"])
@@ -76,14 +80,17 @@ def run(seq: Path, with_full: bool = True, track: TrackParams | None = None,
     if not tracker.ready(60.0):
         print("  the tracker's worker process did not start", file=sys.stderr)
     t_start = time.perf_counter()
-    for i, e in enumerate(truth["images"]):
+    images = truth["images"]
+    i, skipped = 0, 0
+    while i < len(images):
+        e = images[i]
         img = frames[i] if fps else load_frame(seq / e["file"])
         R, t = np.array(e["R_cam_holder"]), np.array(e["t_cam_holder_mm"])
         if fps:   # the camera's frame i arrives at i / fps; a busy tracker makes it wait
             arrival = t_start + i / fps
             time.sleep(max(arrival - time.perf_counter(), 0.0))
         c0, w0 = time.thread_time(), time.perf_counter()
-        r = tracker.update(img)
+        r = tracker.update(img, t_s=i / fps if newest else None)
         cpu, wall = (time.thread_time() - c0) * 1e3, (time.perf_counter() - w0) * 1e3
         err = (pose_errors(R, t, r.pose.R, r.pose.t_mm).dof[0] if r.pose is not None
                else np.full(6, np.nan))
@@ -96,6 +103,7 @@ def run(seq: Path, with_full: bool = True, track: TrackParams | None = None,
         if fps:
             row["latency_ms"] = (time.perf_counter() - arrival) * 1e3
             row["fps"] = fps
+            row["skipped_before"] = skipped
         row |= {f"err_{n}": v for n, v in zip(DOF_NAMES, err)}
         row |= {f"std_{n}": v for n, v in zip(DOF_NAMES, r.std_dof)}
         if r.anchor and "refused" in r.anchor:
@@ -113,6 +121,11 @@ def run(seq: Path, with_full: bool = True, track: TrackParams | None = None,
         rows.append(row)
         print(f"  {seq.name} frame {e['frame']}: {r.mode} {cpu:.1f} ms", file=sys.stderr,
               flush=True)
+        nxt = i + 1
+        if newest:   # a driver that hands over the newest frame: those before it are skipped
+            nxt = max(nxt, min(int((time.perf_counter() - t_start) * fps), len(images) - 1))
+            skipped += nxt - i - 1
+        i = nxt
     tracker.close()
     if with_full:
         band(rows)
@@ -173,6 +186,9 @@ def summary(name: str, rows: list[dict], truth: dict) -> None:
     if "latency_ms" in rows[0]:
         lat = np.array([r["latency_ms"] for r in rows[1:]])
         fps = rows[0]["fps"]
+        if rows[-1].get("skipped_before"):
+            print(f"  newest-frame driver: {rows[-1]['skipped_before']} frames skipped, "
+                  f"{len(rows)} answered")
         print(f"  played at {fps:g} fps: latency after the first frame median "
               f"{np.median(lat):.1f} ms (p90 {np.percentile(lat, 90):.1f}, max {lat.max():.1f}); "
               f"answered later than one frame ({1e3 / fps:.0f} ms): {int(np.sum(lat > 1e3 / fps))}"
@@ -272,6 +288,9 @@ def main() -> int:
                     "and field presets; default: not known)")
     ap.add_argument("--edge-look", default=None, help="an edge look file from "
                     "`cutterpose calibrate-edge-look` (dm+b: tracker and full measurement)")
+    ap.add_argument("--newest", action="store_true", help="with --fps: hand the tracker the "
+                    "newest frame when it is free (those that came meanwhile are skipped), "
+                    "with the frames' times, as a camera driver that drops stale frames")
     ap.add_argument("--fps", type=float, default=None, help="play the frames at this rate "
                     "(a camera's; implies --no-full) and report each frame's latency")
     ap.add_argument("--anchor-worker", default="process", choices=("process", "thread",
@@ -295,8 +314,10 @@ def main() -> int:
             from cutterpose.calibration.edge_look import load_edge_look
 
             look = load_edge_look(a.edge_look)
+        if a.newest and not a.fps:
+            ap.error("--newest needs --fps")
         rows = run(seq, not (a.no_full or a.fps), tp, a.method, look, a.edge_break_mm,
-                   a.fps, a.anchor_worker)
+                   a.fps, a.anchor_worker, a.newest)
         out = a.out / seq.name
         out.mkdir(parents=True, exist_ok=True)
         keys = list(dict.fromkeys(k for r in rows for k in r))

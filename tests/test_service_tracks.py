@@ -109,6 +109,7 @@ def test_bad_frames_and_requests_are_typed_4xx(service):
             "small png": _frame(client, tid, _png(img[::2, ::2])),
             "flange pose": _frame(client, tid, _png(img), params={"flange_pose": "1,2,3"}),
             "empty": _frame(client, tid, b""),
+            "frame time": _frame(client, tid, _png(img), params={"t_s": "soon"}),
         }
         codes = {k: (r.status_code, r.json()["error"]) for k, r in bad.items()}
         assert codes == {"json body": (415, "unsupported_media_type"),
@@ -117,7 +118,8 @@ def test_bad_frames_and_requests_are_typed_4xx(service):
                          "truncated png": (422, "image_unusable"),
                          "small png": (422, "image_unusable"),
                          "flange pose": (422, "bad_flange_pose"),
-                         "empty": (400, "empty_body")}, codes
+                         "empty": (400, "empty_body"),
+                         "frame time": (422, "validation_error")}, codes
         # none of them reached the tracker
         assert client.get(f"/v1/tracks/{tid}", headers=AUTH).json()["frames"] == 0
         assert _open(client, holder="nope").status_code == 422
@@ -126,6 +128,18 @@ def test_bad_frames_and_requests_are_typed_4xx(service):
         assert client.get("/v1/tracks/xyz", headers=AUTH).status_code == 422
         assert client.post("/v1/tracks", json={}).status_code == 401
         assert _frame(client, tid, _png(img)).status_code == 200   # the session still works
+        # a frame time after frames without: the tracker refuses it, typed
+        r = _frame(client, tid, _png(frames[1]), params={"t_s": 0.1})
+        assert (r.status_code, r.json()["error"]) == (422, "bad_input"), r.text
+        assert "t_s" in r.json()["message"], r.text
+    finally:
+        client.delete(f"/v1/tracks/{tid}", headers=AUTH)
+    # a session whose frames all carry their times (a client sending the newest frame)
+    tid = _open(client).json()["id"]
+    try:
+        modes = [_frame(client, tid, _png(f), params={"t_s": 0.1 * k}).json()["mode"]
+                 for k, f in zip((0, 1, 3), (frames[0], frames[1], frames[3]))]
+        assert modes == ["full", "track", "track"], modes
     finally:
         client.delete(f"/v1/tracks/{tid}", headers=AUTH)
 

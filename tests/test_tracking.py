@@ -677,3 +677,31 @@ def test_frames_after_a_deferred_fall_back_are_tracked_while_it_is_pending(seque
     assert "edges" in res[2].fallback_reason
     assert res[4].anchor.startswith("full measurement of frame 2 not applied (")
     assert res[4].measurement is not None and not res[4].measurement.ok
+
+
+def test_frame_times_carry_the_motion_over_skipped_frames(sequence):
+    """A driver that hands over the newest frame skips those that came while the tracker was
+    busy: with each frame's time the motion is predicted per second, so frame 5 after frame 2
+    (frames 3 and 4 skipped) is predicted where it is; without, one frame's motion on."""
+    d, truth = sequence
+    byframe = {e["frame"]: e for e in truth["images"]}
+    timed = Tracker(CAM, default_holder(), "dm+", limits=SHARP)
+    plain = Tracker(CAM, default_holder(), "dm+", limits=SHARP)
+    for f in (0, 1, 2):
+        timed.update(d / byframe[f]["file"], t_s=0.1 * f)
+        plain.update(d / byframe[f]["file"])
+    e = byframe[5]
+    t_true = np.array(e["t_cam_holder_mm"])
+    miss_timed = np.linalg.norm(timed.predict(t_s=0.5).t_mm - t_true)
+    miss_plain = np.linalg.norm(plain.predict().t_mm - t_true)
+    assert miss_timed < 0.2 * miss_plain and miss_timed < 2.0, (miss_timed, miss_plain)
+    r = timed.update(d / e["file"], t_s=0.5)
+    assert r.mode == "track", r.fallback_reason
+    err = pose_errors(np.array(e["R_cam_holder"]), t_true, r.pose.R, r.pose.t_mm).dof[0]
+    assert np.all(np.abs(err[3:]) < 0.5) and np.all(np.abs(err[:3]) < 0.2), err
+    with pytest.raises(InputError):
+        timed.update(d / byframe[6]["file"])               # no time after timed frames
+    with pytest.raises(InputError):
+        timed.update(d / byframe[6]["file"], t_s=0.5)      # not later than the last
+    with pytest.raises(InputError):
+        timed.predict()

@@ -122,6 +122,13 @@ length on the holder; then the fitted pose is the design edge's directly.
   depend on the worker or the machine's speed. The first frame is always measured on the
   spot (there is nothing to track from).
 
+* **frame times** (``Tracker.update(image, t_s=)``): without them each update is one step
+  of the constant-velocity prediction. A camera driver that hands over the newest frame and
+  skips those that came while the tracker was busy gives each frame's timestamp: the motion
+  is then kept per second and carried over any gap (the same twist in each second). The
+  deferred jobs are still scheduled in updates (``anchor_lag`` updates later), and the
+  temporal filter still takes one update as one step.
+
 ``method="dm+"`` tracks the design model itself (no offsets, no re-anchoring): right for a
 sharp edge (declare it, ``QualityLimits.edge_break_mm = 0``; otherwise its verdict carries a
 break it cannot see and refuses) or a binned camera that cannot resolve the band.
@@ -740,6 +747,9 @@ class Tracker:
         #: the motion per frame (R, t) that carries _last on (None: not known)
         self._vel: tuple | None = None
         self._after_full = False   # no frame tracked since the last full measurement
+        #: frame times (``update(..., t_s=)``); without them a frame's time is its index
+        self._frame_t: dict[int, float] = {}
+        self._timed = False
         self._rms_ref = 0.0   # corner RMS of the last accepted full measurement (px)
         self._n = 0
         #: a deferred re-anchor: (frame to apply it on, its future, the measured frame's
@@ -780,11 +790,16 @@ class Tracker:
         self.close()
 
     # -- one frame ---------------------------------------------------------------------
-    def update(self, image) -> TrackResult:
-        """Pose in the next frame (array, raw buffer of the camera's size, or a file)."""
+    def update(self, image, t_s: float | None = None) -> TrackResult:
+        """Pose in the next frame (array, raw buffer of the camera's size, or a file).
+
+        ``t_s``: the frame's time (s, the camera's timestamp), for a driver that hands over
+        the newest frame and skips those that came while the tracker was busy: the motion is
+        then predicted per second, not per frame. Give it for every frame or for none."""
         t0 = time.perf_counter()
         img = as_grey_u8(load_frame(image, self.camera))
         k = self._n
+        self._stamp(k, t_s)
         self._n += 1
         timings: dict[str, float] = {}
         reason = "first frame" if k == 0 else "no previous pose"
@@ -866,13 +881,41 @@ class Tracker:
         res.timings_ms = timings | {"total": (time.perf_counter() - t0) * 1e3}
         return res
 
+    def _stamp(self, k: int, t_s: float | None) -> None:
+        """Keep frame ``k``'s time (its index without timestamps)."""
+        timed = t_s is not None
+        if k > 0 and timed != self._timed:
+            raise InputError("give t_s for every frame of a track or for none (frame "
+                             f"{k}: {'given' if timed else 'missing'})")
+        self._timed = timed
+        if timed:
+            t = float(t_s)
+            prev = self._frame_t.get(k - 1)
+            if not math.isfinite(t) or (prev is not None and not t > prev):
+                raise InputError(f"frame times must be finite and increase: frame {k} at "
+                                 f"{t_s} s after {prev} s")
+            self._frame_t[k] = t
+            # the deferred jobs look back a few frames at most
+            self._frame_t.pop(k - 1000, None)
+
+    def _time(self, k: int) -> float:
+        """Frame ``k``'s time: its timestamp (s) or, without timestamps, its index."""
+        return self._frame_t[k] if self._timed else float(k)
+
+    def _motion(self, a: Pose, ka: int, b: Pose, kb: int) -> tuple | None:
+        """The motion per unit of time (a frame, or a second with timestamps) from pose
+        ``b`` on frame ``kb`` to pose ``a`` on frame ``ka``: the same twist in each unit."""
+        gap = self._time(ka) - self._time(kb)
+        if not gap > 0:
+            return None
+        R, t = _relative(a, b)
+        return (R, t) if gap == 1.0 else se3_exp(se3_log(R, t) / gap)
+
     def _moved_to(self, pose: Pose, k: int) -> None:
-        """``pose`` on frame ``k`` is the last one; the motion per frame from the one before
-        (over a gap of frames without a pose: the same twist each frame)."""
+        """``pose`` on frame ``k`` is the last one; the motion since the one before (over a
+        gap of frames without a pose: the same twist in each unit of time)."""
         if self._last is not None and k > self._last_k:
-            R, t = _relative(pose, self._last)
-            gap = k - self._last_k
-            self._vel = (R, t) if gap == 1 else se3_exp(se3_log(R, t) / gap)
+            self._vel = self._motion(pose, k, self._last, self._last_k)
         self._last, self._last_k = pose, k
         self._after_full = False
 
@@ -956,9 +999,7 @@ class Tracker:
         elif vel is not None:
             self._vel = vel
         elif last is not None and j > last_k:
-            self._vel = _relative(m.pose, last)
-            if j - last_k > 1:
-                self._vel = se3_exp(se3_log(*self._vel) / (j - last_k))
+            self._vel = self._motion(m.pose, j, last, last_k)
         return "", m
 
     # -- broken edges: the tracked edges' offsets from the design edge --------------------
@@ -1228,17 +1269,32 @@ class Tracker:
         if self.filter is not None and res.pose is not None:
             res.filtered_pose, res.filter_reset = self.filter.update(res.pose, force)
 
-    def predict(self, k: int | None = None) -> Pose | None:
-        """The pose predicted for frame ``k`` (default: the next one): the last pose moved on
-        by the motion per frame once per frame since, when that motion is known."""
+    def predict(self, t_s: float | None = None) -> Pose | None:
+        """The pose predicted for the next frame, or (a track with timestamps) at time
+        ``t_s``: the last pose moved on by the last motion, when that is known."""
+        if self._timed != (t_s is not None):
+            raise InputError("predict: give t_s exactly when the frames have timestamps")
         if self._last is None:
             return None
-        k = self._n if k is None else k
+        dt = (float(t_s) if self._timed else float(self._n)) - self._time(self._last_k)
+        return self._carried(dt)
+
+    def _predict(self, k: int) -> Pose | None:
+        """The pose predicted for frame ``k`` (already stamped)."""
+        return self._carried(self._time(k) - self._time(self._last_k))
+
+    def _carried(self, dt: float) -> Pose:
+        """The last pose moved on by the last motion over ``dt`` units of time (whole frames
+        one step at a time, as the motion was measured; else on the twist)."""
         pose = self._last
-        if self._vel is not None:
-            for _ in range(max(k - self._last_k, 0)):
+        if self._vel is None or not dt > 0:
+            return pose
+        if float(dt).is_integer() and dt <= 64:
+            for _ in range(int(dt)):
                 pose = _left(*self._vel, pose)
-        return pose
+            return pose
+        R, t = se3_exp(se3_log(*self._vel) * dt)
+        return _left(R, t, pose)
 
     def _project(self, pose: Pose) -> np.ndarray | None:
         """The model corners projected with ``pose`` (ideal px, holder order); None if the
@@ -1275,7 +1331,7 @@ class Tracker:
 
         tp = self.tp
         n = len(self._model_mm)
-        pose = self.predict(k)
+        pose = self._predict(k)
         self._follow_view(pose)
         # no velocity yet (second frame), or the first frame after a full measurement (its
         # offsets are new; one edge may still sit ~2-3 px off a worn holder's model): a

@@ -50,7 +50,6 @@ from .metrics import CONTENT_TYPE_LATEST, Metrics, MetricsMiddleware
 from .models import (
     ErrorBody,
     Health,
-    ImageQuery,
     MeasureJSON,
     MeasurementList,
     MeasurementRecord,
@@ -58,6 +57,7 @@ from .models import (
     Ready,
     TrackCreate,
     TrackFrameOut,
+    TrackFrameQuery,
     TrackInfo,
     parse_flange_pose,
 )
@@ -557,7 +557,7 @@ def create_app(cell: Cell, pool: WorkerPool | None = None) -> FastAPI:
                               if k != "application/json"}}},
               tags=["tracking"])
     async def post_frame(request: Request, track_id: TrackId,
-                         q: Annotated[ImageQuery, Query()], tracks: TracksDep):
+                         q: Annotated[TrackFrameQuery, Query()], tracks: TracksDep):
         """The next frame of the session: its pose from the previous ones (or a full
         measurement, with the reason). Not stored."""
         t0 = time.perf_counter()
@@ -584,7 +584,7 @@ def create_app(cell: Cell, pool: WorkerPool | None = None) -> FastAPI:
                 raise ApiError(404, "not_found", f"tracking session {track_id} was closed")
             t3 = time.perf_counter()
             try:
-                out = await asyncio.to_thread(track_frame, s, cell, img, row)
+                out = await asyncio.to_thread(track_frame, s, cell, img, row, q.t_s)
             except CutterposeError as e:
                 raise ApiError(422, "bad_input", f"{type(e).__name__}: {e}") from None
             finally:

@@ -19,7 +19,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 __all__ = ["ErrorBody", "MeasureQuery", "MeasureJSON", "MeasurementRecord", "MeasurementList",
            "Ready", "Health", "parse_flange_pose", "FLANGE_POSE_DOC", "REQUEST_ID_PATTERN",
-           "ImageQuery", "TrackCreate", "TrackInfo", "TrackFrameOut"]
+           "ImageQuery", "TrackFrameQuery", "TrackCreate", "TrackInfo", "TrackFrameOut"]
 
 REQUEST_ID_PATTERN = r"^[A-Za-z0-9._:-]{1,128}$"
 FLANGE_POSE_DOC = ("The robot's flange pose T_base_flange when the picture was taken, as the "
@@ -100,6 +100,15 @@ class MeasureQuery(ImageQuery):
         "the same id with a different image, flange pose or holder gets 409."))
     holder: str | None = Field(None, max_length=64, description="Holder model name from the "
                                "cell file (default: the cell's default_holder).")
+
+
+class TrackFrameQuery(ImageQuery):
+    """Query parameters of ``POST /v1/tracks/{id}/frames``."""
+
+    t_s: float | None = Field(None, allow_inf_nan=False, description="The frame's time (s, the "
+                              "camera's timestamp): for a client that sends the newest frame "
+                              "and skips stale ones, the motion is then predicted per second. "
+                              "For every frame of the session or for none.")
 
 
 class MeasureJSON(_Model):

@@ -134,9 +134,11 @@ class TrackSessions:
                 self.close(k)
 
 
-def track_frame(session: TrackSession, cell: Cell, img, flange_row) -> dict:
+def track_frame(session: TrackSession, cell: Cell, img, flange_row,
+                t_s: float | None = None) -> dict:
     """One frame through the session's tracker (blocking: run it in a thread), with the base
-    frame when the request has a flange pose and the cell a hand-eye file.
+    frame when the request has a flange pose and the cell a hand-eye file; ``t_s`` the
+    frame's time (:meth:`~cutterpose.tracking.Tracker.update`).
 
     Returns
     -------
@@ -144,7 +146,7 @@ def track_frame(session: TrackSession, cell: Cell, img, flange_row) -> dict:
     """
     from .robot_frame import robot_frame
 
-    r = session.tracker.update(img)
+    r = session.tracker.update(img, t_s=t_s)
     session.frames += 1
     session.last_mode = r.mode
     # the full measurement carries its error budget's covariance; a tracked frame its std
