@@ -7,6 +7,7 @@ Convention:
 
 from __future__ import annotations
 
+import threading
 from collections import OrderedDict
 
 import cv2
@@ -111,24 +112,29 @@ def find_roi(image: np.ndarray, camera: Camera, holder: Holder, params: FeatureP
 class _Recent(OrderedDict):
     """A bounded cache that forgets its least recently used entries. (Clearing it whole when
     full, as before, rebuilt all 45 coarse templates of an approach's five depths on about
-    every other full measurement: ~190 ms of its ~250.)"""
+    every other full measurement: ~190 ms of its ~250.) Keys are built by the callers (the
+    camera and holder are not hashable, so not ``functools.lru_cache``); a lock, as the
+    service tracks its sessions in threads."""
 
     def __init__(self, maxsize: int):
         super().__init__()
         self.maxsize = int(maxsize)
+        self._lock = threading.Lock()
 
     def recall(self, key):
         """The entry of ``key`` (None when absent), marked as just used."""
-        if key not in self:
-            return None
-        self.move_to_end(key)
-        return self[key]
+        with self._lock:
+            if key not in self:
+                return None
+            self.move_to_end(key)
+            return self[key]
 
     def keep(self, key, value) -> None:
-        self[key] = value
-        self.move_to_end(key)
-        while len(self) > self.maxsize:
-            self.popitem(last=False)
+        with self._lock:
+            self[key] = value
+            self.move_to_end(key)
+            while len(self) > self.maxsize:
+                self.popitem(last=False)
 
 
 #: templates are a few 10 kB (the outline's box at 1/8 or 1/16 scale): ~10 MB at most
