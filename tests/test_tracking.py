@@ -705,3 +705,28 @@ def test_frame_times_carry_the_motion_over_skipped_frames(sequence):
         timed.update(d / byframe[6]["file"], t_s=0.5)      # not later than the last
     with pytest.raises(InputError):
         timed.predict()
+
+
+def test_filter_steps_by_the_frame_times():
+    """Poses of a constant motion per second at uneven times: stepping by the times, the filter
+    predicts each of them (no innovation, no gate); one update per step instead would take a
+    0.3 s gap for 0.1 s and reset at the gate."""
+    times = [0.0, 0.1, 0.2, 0.5, 0.6, 1.0, 1.1]
+    start = Pose.from_euler(1, -2, 3, 5, -4, 800)
+    xi = np.array([0.03, -0.01, 0.02, 10.0, -5.0, -60.0])   # per second: rad, mm
+    poses = []
+    for t in times:
+        R, tr = se3_exp(xi * t)
+        poses.append(Pose(R @ start.R, R @ start.t_mm + tr))
+    f = PoseFilter(gate_mm=5.0)
+    out = [f.update(p, dt=t - t0 if i else 1.0) for i, (p, t, t0) in
+           enumerate(zip(poses, times, [0.0] + times[:-1]))]
+    assert all(r == "" for _, r in out[1:]), [r for _, r in out]
+    for (z, _), p in zip(out, poses):
+        e = pose_errors(p.R, p.t_mm, z.R, z.t_mm)
+        assert e.trans_mm[0] < 1e-6 and e.rot_deg[0] < 1e-6
+    g = PoseFilter(gate_mm=5.0)
+    resets = [g.update(p)[1] for p in poses]
+    assert any("beyond the gate" in r for r in resets), resets
+    with pytest.raises(InputError):
+        f.update(poses[0], dt=0.0)

@@ -126,17 +126,18 @@ length on the holder; then the fitted pose is the design edge's directly.
   of the constant-velocity prediction. A camera driver that hands over the newest frame and
   skips those that came while the tracker was busy gives each frame's timestamp: the motion
   is then kept per second and carried over any gap (the same twist in each second). The
-  deferred jobs are still scheduled in updates (``anchor_lag`` updates later), and the
-  temporal filter still takes one update as one step.
+  deferred jobs are still scheduled in updates (``anchor_lag`` updates later); the temporal
+  filter steps by the frames' times too.
 
 ``method="dm+"`` tracks the design model itself (no offsets, no re-anchoring): right for a
 sharp edge (declare it, ``QualityLimits.edge_break_mm = 0``; otherwise its verdict carries a
 break it cannot see and refuses) or a binned camera that cannot resolve the band.
 
 **Temporal filter** (optional, ``filter=True``): an alpha-beta filter, the steady-state Kalman
-filter of a constant-velocity model, on SE(3): state ``T`` and a per-frame twist ``xi``;
-predict ``T- = Exp(xi) T``; innovation ``nu = Log(Z T-^{-1})`` for the measured pose ``Z``;
-update ``T = Exp(alpha nu) T-``, ``xi = xi + beta nu``. It is reported *beside* the raw pose,
+filter of a constant-velocity model, on SE(3): state ``T`` and a twist ``xi`` per unit of
+time (a frame, or a second with frame times); over a step ``dt`` predict
+``T- = Exp(dt xi) T``; innovation ``nu = Log(Z T-^{-1})`` for the measured pose ``Z``;
+update ``T = Exp(alpha nu) T-``, ``xi = xi + beta nu / dt``. It is reported *beside* the raw pose,
 never instead of it, and it is reset to the raw pose (velocity zero) after a fall-back or when
 the innovation exceeds the gate, so that it never hides a jump.
 
@@ -624,18 +625,22 @@ class PoseFilter:
         self.pose, self.xi = pose, np.zeros(6)
         self._fresh = True   # one pose since the reset: the velocity is not known yet
 
-    def update(self, z: Pose, force_reset: str = "") -> tuple[Pose, str]:
-        """Filter the measured pose ``z``; returns the filtered pose and the reset reason."""
+    def update(self, z: Pose, force_reset: str = "", dt: float = 1.0) -> tuple[Pose, str]:
+        """Filter the measured pose ``z``, ``dt`` after the last one (in the twist's unit: a
+        frame, or a second with frame times); returns the filtered pose and the reset
+        reason."""
         if self.pose is None or force_reset:
             self.reset(z)
             return z, force_reset or "first pose"
+        if not dt > 0:
+            raise InputError(f"filter: the time step must be > 0, got {dt}")
         if self._fresh:
             # two-point start: the velocity from the first two poses, the state on the second
             Rn, tn = _relative(z, self.pose)
-            self.xi = se3_log(Rn, tn)
+            self.xi = se3_log(Rn, tn) / dt
             self.pose, self._fresh = z, False
             return z, ""
-        Rp, tp = se3_exp(self.xi)
+        Rp, tp = se3_exp(self.xi * dt)
         pred = _left(Rp, tp, self.pose)
         nu = se3_log(*_relative(z, pred))
         # gate on what a jump looks like: the holder's displacement and rotation angle
@@ -647,7 +652,7 @@ class PoseFilter:
                        f"({self.gate_mm} mm / {self.gate_deg} deg)")
         Ru, tu = se3_exp(self.alpha * nu)
         self.pose = _left(Ru, tu, pred)
-        self.xi = self.xi + self.beta * nu
+        self.xi = self.xi + self.beta * nu / dt
         return self.pose, ""
 
 
@@ -750,6 +755,7 @@ class Tracker:
         #: frame times (``update(..., t_s=)``); without them a frame's time is its index
         self._frame_t: dict[int, float] = {}
         self._timed = False
+        self._filter_k: int | None = None   # the frame the filter last took
         self._rms_ref = 0.0   # corner RMS of the last accepted full measurement (px)
         self._n = 0
         #: a deferred re-anchor: (frame to apply it on, its future, the measured frame's
@@ -929,6 +935,7 @@ class Tracker:
         res = TrackResult(k, "lost", None, np.full(6, np.nan), False, reason, measurement=m)
         if self.filter is not None:
             self.filter.reset()
+            self._filter_k = None
             res.filter_reset = "lost"
         res.timings_ms = timings | {"total": (time.perf_counter() - t0) * 1e3}
         return res
@@ -962,9 +969,10 @@ class Tracker:
         at = k + self.tp.anchor_lag
         fut = self._submit(full_measurement, img, self.camera, self.holder, self.method,
                            self.params, self.limits, self.edge_look)
-        # the last pose and motion before the failure carry the measured pose to frame ``at``
-        self._pending_full = (at, k, fut, np.array(img, copy=True), self._last, self._last_k,
-                              self._vel)
+        # the last pose and motion before the failure carry the measured pose to frame ``at``;
+        # the frame itself is kept for the offsets of a method that has them (dm+b, dm+r)
+        keep = np.array(img, copy=True) if get_method(self.method).base is not None else None
+        self._pending_full = (at, k, fut, keep, self._last, self._last_k, self._vel)
         return self._no_pose(k, f"{reason}; full measurement started (applied at frame "
                                 f"{at})", None, timings, t0, forget=False)
 
@@ -1267,7 +1275,10 @@ class Tracker:
 
     def _filter(self, res: TrackResult, force: str) -> None:
         if self.filter is not None and res.pose is not None:
-            res.filtered_pose, res.filter_reset = self.filter.update(res.pose, force)
+            k0 = self._filter_k
+            dt = self._time(res.frame) - self._time(k0) if k0 is not None else 1.0
+            res.filtered_pose, res.filter_reset = self.filter.update(res.pose, force, dt)
+            self._filter_k = res.frame
 
     def predict(self, t_s: float | None = None) -> Pose | None:
         """The pose predicted for the next frame, or (a track with timestamps) at time
