@@ -730,3 +730,28 @@ def test_filter_steps_by_the_frame_times():
     assert any("beyond the gate" in r for r in resets), resets
     with pytest.raises(InputError):
         f.update(poses[0], dt=0.0)
+
+
+def test_the_first_offsets_come_from_the_lines_at_the_measured_pose(changing_break,
+                                                                    monkeypatch):
+    """The first full measurement's anchor tracks its own frame from the measured pose; when
+    that fails its checks (a chipped edge far off the design model, which has no offsets
+    yet), the offsets are measured from the lines found round the measured pose instead, as
+    the passing anchor would, and the next frame is tracked."""
+    cam, hol, poses, frames, params = changing_break
+    ref = Tracker(cam, hol, method="dm+b", params=params)
+    assert ref.update(frames[0]).mode == "full"
+    track = Tracker._track
+    calls = []
+
+    def first_fails(self, img, k, timings):
+        calls.append(k)
+        return "forced" if len(calls) == 1 else track(self, img, k, timings)
+
+    monkeypatch.setattr(Tracker, "_track", first_fails)
+    tracker = Tracker(cam, hol, method="dm+b", params=params)
+    assert tracker.update(frames[0]).mode == "full" and calls == [0]
+    assert tracker._offset_mm is not None and tracker._measured.sum() >= 10
+    m = tracker._measured & ref._measured
+    np.testing.assert_allclose(tracker._offset_mm[m], ref._offset_mm[m], atol=0.05)
+    assert tracker.update(frames[1]).mode == "track"

@@ -1014,8 +1014,11 @@ class Tracker:
     def _anchor_full(self, img: np.ndarray, k: int, m: Measurement) -> None:
         """The offsets from the tracker's own edges in this frame, found from the fully
         measured design pose (the innermost rise of a broken edge, as tracking will see it).
-        When those edges fail tracking's checks, the previous offsets (or none) are kept and
-        the next tracked frame measures them again."""
+        When those edges fail tracking's checks, the previous offsets are kept and the next
+        tracked frame measures them again. With none yet, the lines found round the measured
+        pose give them: the checks fit the model, and without offsets the model is what is
+        off (a chipped edge's line 2.6 mm out of the design edge sat 8 px off it at 900 mm,
+        and no frame could be tracked until a second full measurement's anchor passed)."""
         self._last, self._last_k, self._vel = m.pose, k, None
         self._set_view_model(m.edge_band)
         try:
@@ -1025,8 +1028,17 @@ class Tracker:
         self._anchors = self._attempts = 0
         if isinstance(res, TrackResult):
             self._set_offsets(m.pose, *self._anchor_lines(res), m.std_dof, k, 1.0)
-        else:
-            self._anchor_t_mm = None
+            return
+        self._anchor_t_mm = None
+        if self._offset_mm is None:
+            tp = self.tp
+            found = self._lines_at(img, m.pose, tp.band_half_width_px * tp.cold_band_factor)
+            if isinstance(found, str):
+                return
+            lines, seen, _ = found
+            fam = np.bincount(np.nonzero(seen)[0] % 2, minlength=2)
+            if seen.sum() >= tp.min_lines and fam.min() >= 2:
+                self._set_offsets(m.pose, lines, seen, m.std_dof, k, 1.0)
 
     def _anchor_due(self, pose: Pose, k: int) -> bool:
         """A re-anchor on this tracked frame (``dm+b`` only: its band fit needs nothing but
@@ -1331,6 +1343,31 @@ class Tracker:
             self._line_cache[key] = p
         return p
 
+    def _lines_at(self, img: np.ndarray, pose: Pose, hw: float, lap=None):
+        """The tracked edges' lines (ideal px) in bands of +-``hw`` px round the model
+        projected with ``pose``: ``(lines, seen, support)``, or why there are none."""
+        tp = self.tp
+        corners_pred = self._project(pose)
+        if corners_pred is None:
+            return "the predicted holder is behind the camera"
+        pred_px = self.camera.distort_px(corners_pred)
+        if not np.all(self.camera.in_image(pred_px, 2 * hw)):
+            return "the predicted holder leaves the image"
+        # a crop round the predicted pocket (float32: sub-pixel grey-level profiles)
+        m = hw + 4.0
+        u0, v0 = np.maximum(np.floor(pred_px.min(axis=0) - m), 0).astype(int)
+        u1, v1 = np.ceil(pred_px.max(axis=0) + m + 1).astype(int)
+        sub = img[v0:v1, u0:u1].astype(np.float32)
+        if lap is not None:
+            lap("predict")
+        # the field chain's lines: innermost rise, LMedS + Tukey, support and shift gates
+        lines, seen, _, support, _ = robust_edge_lines(
+            sub, np.array([u0, v0], float), self.camera, corners_pred,
+            self._line_params(hw, tp.shift_fraction * hw))
+        if lap is not None:
+            lap("edges")
+        return lines, seen, support
+
     def _track(self, img: np.ndarray, k: int, timings: dict) -> TrackResult | str:
         t = time.perf_counter()
 
@@ -1352,23 +1389,10 @@ class Tracker:
         passes = dropped = 0
         for _ in range(tp.max_passes):
             passes += 1
-            corners_pred = self._project(pose)
-            if corners_pred is None:
-                return "the predicted holder is behind the camera"
-            pred_px = self.camera.distort_px(corners_pred)
-            if not np.all(self.camera.in_image(pred_px, 2 * hw)):
-                return "the predicted holder leaves the image"
-            # a crop round the predicted pocket (float32: sub-pixel grey-level profiles)
-            m = hw + 4.0
-            u0, v0 = np.maximum(np.floor(pred_px.min(axis=0) - m), 0).astype(int)
-            u1, v1 = np.ceil(pred_px.max(axis=0) + m + 1).astype(int)
-            sub = img[v0:v1, u0:u1].astype(np.float32)
-            lap("predict")
-            # the field chain's lines: innermost rise, LMedS + Tukey, support and shift gates
-            lines, seen, _, support, _ = robust_edge_lines(
-                sub, np.array([u0, v0], float), self.camera, corners_pred,
-                self._line_params(hw, tp.shift_fraction * hw))
-            lap("edges")
+            found_at = self._lines_at(img, pose, hw, lap)
+            if isinstance(found_at, str):
+                return found_at
+            lines, seen, support = found_at
             # an edge whose offset no anchor has measured yet (hidden then) has only the
             # others' median offset, millimetres off on a worn holder: its position counts as
             # far as the measured offsets agree (:meth:`_weigh_unmeasured`), its direction in
