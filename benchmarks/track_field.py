@@ -193,8 +193,8 @@ def summary(name: str, rows: list[dict], truth: dict) -> None:
               f"{np.median(lat):.1f} ms (p90 {np.percentile(lat, 90):.1f}, max {lat.max():.1f}); "
               f"answered later than one frame ({1e3 / fps:.0f} ms): {int(np.sum(lat > 1e3 / fps))}"
               f" of {len(lat)}")
-    # deferred fall-backs (TrackParams.defer_fallbacks with anchor_lag > 0): the frame and
-    # those before the take-up have no pose
+    # deferred fall-backs (TrackParams.defer_fallbacks with anchor_lag > 0): the frame has no
+    # pose; those before the take-up are tracked meanwhile, or have none either
     started = [r for r in rows if r["reason"].endswith(")") and
                "full measurement started (applied at" in r["reason"]]
     pending = [r for r in rows if " pending (applied at frame" in r["reason"]]

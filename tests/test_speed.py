@@ -223,6 +223,7 @@ def test_outline_caches_forget_the_least_recently_used_entry():
     :func:`prepare_outline_search` builds the coarse ones ahead (a tracker's worker)."""
     from cutterpose.image.region import (
         _OUTLINE_CACHE,
+        _SPECTRUM_CACHE,
         _coarse_templates,
         _Recent,
         prepare_outline_search,
@@ -238,9 +239,10 @@ def test_outline_caches_forget_the_least_recently_used_entry():
     cam, hol = default_camera("table1"), default_holder()
     params = approach_params(cam)
     _OUTLINE_CACHE.clear()
+    _SPECTRUM_CACHE.clear()
     prepare_outline_search(cam, hol, params)
     gd, tpls = _coarse_templates(cam, hol, params)
     n = len(params.roi_depths_mm) * len(params.roi_gammas_deg)
-    assert len(gd) == n == len(_OUTLINE_CACHE) and n > 40
+    assert len(gd) == n == len(_OUTLINE_CACHE) == len(_SPECTRUM_CACHE) and n > 40
     # built once: the same objects again
     assert all(a is b for a, b in zip(tpls, _coarse_templates(cam, hol, params)[1]))

@@ -121,7 +121,6 @@ length on the holder; then the fitted pose is the design edge's directly.
   no pose since ``j``, the next measurement starts. The frames are fixed, so the poses do not
   depend on the worker or the machine's speed. The first frame is always measured on the
   spot (there is nothing to track from).
-
 * **frame times** (``Tracker.update(image, t_s=)``): without them each update is one step
   of the constant-velocity prediction. A camera driver that hands over the newest frame and
   skips those that came while the tracker was busy gives each frame's timestamp: the motion
@@ -701,6 +700,9 @@ class Tracker:
         self.edge_look = edge_look
         self.holder = holder or default_holder()
         self.method = method
+        #: the method refines dm+'s pose beyond the corners (dm+b, dm+r): the tracker carries
+        #: its edges' offsets from the design edge
+        self._refines = get_method(method).base is not None
         self.params = params or approach_params(self.camera)
         self.limits = limits or approach_limits()
         self.tp = (track or TrackParams()).for_camera(self.camera)
@@ -947,7 +949,7 @@ class Tracker:
         # edge from the bands): the tracker follows the edges the corners come from (the
         # innermost rise), so it measures here, at the measured design pose, how far
         # each of them lies from the design edge (module doc, "Broken edges")
-        refines = get_method(self.method).base is not None
+        refines = self._refines
         start = m.estimate.info.get("start") if refines and m.estimate else None
         # the residual the tracked edges are held to: the corners' (dm+'s, for dm+b,
         # which starts from the outline and fits no corners itself)
@@ -971,7 +973,7 @@ class Tracker:
                            self.params, self.limits, self.edge_look)
         # the last pose and motion before the failure carry the measured pose to frame ``at``;
         # the frame itself is kept for the offsets of a method that has them (dm+b, dm+r)
-        keep = np.array(img, copy=True) if get_method(self.method).base is not None else None
+        keep = np.array(img, copy=True) if self._refines else None
         self._pending_full = (at, k, fut, keep, self._last, self._last_k, self._vel)
         return self._no_pose(k, f"{reason}; full measurement started (applied at frame "
                                 f"{at})", None, timings, t0, forget=False)

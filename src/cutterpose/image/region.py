@@ -209,6 +209,25 @@ def _orientation_field(img: np.ndarray) -> np.ndarray:
 _SPECTRUM_CACHE = _Recent(192)
 
 
+def _fft_shape(h: int, w: int) -> tuple[int, int]:
+    """The transform size of :func:`correlate_templates` for an (h, w) image."""
+    from scipy import fft
+
+    return fft.next_fast_len(h), fft.next_fast_len(w, real=True)
+
+
+def _template_spectrum(t: np.ndarray, shape: tuple) -> np.ndarray:
+    """The conjugate spectrum (C, ...) of template ``t`` at transform size ``shape``, cached."""
+    from scipy import fft
+
+    key = (id(t), shape)
+    hit = _SPECTRUM_CACHE.recall(key)
+    if hit is None or hit[0] is not t:   # the template kept in the entry: ids stay unique
+        hit = (t, np.conj(fft.rfft2(np.moveaxis(t, -1, 0), s=shape, axes=(1, 2), workers=1)))
+        _SPECTRUM_CACHE.keep(key, hit)
+    return hit[1]
+
+
 def correlate_templates(image: np.ndarray, templates: list) -> list:
     """``cv2.matchTemplate(image, t, cv2.TM_CCORR)`` for several multi-channel templates (the
     "valid" cross-correlation, summed over the channels), by FFT (speed, issue 13): the
@@ -222,20 +241,15 @@ def correlate_templates(image: np.ndarray, templates: list) -> list:
     from scipy import fft
 
     h, w = image.shape[:2]
-    shape = (fft.next_fast_len(h), fft.next_fast_len(w, real=True))
+    shape = _fft_shape(h, w)
     # channels first: contiguous planes for the transforms and the products
     spec_img = fft.rfft2(np.moveaxis(image, -1, 0), s=shape, axes=(1, 2), workers=1)
     out = []
     for t in templates:
-        key = (id(t), shape)
-        hit = _SPECTRUM_CACHE.recall(key)
-        if hit is None or hit[0] is not t:   # the template kept in the entry: ids stay unique
-            hit = (t, np.conj(fft.rfft2(np.moveaxis(t, -1, 0), s=shape, axes=(1, 2),
-                                         workers=1)))
-            _SPECTRUM_CACHE.keep(key, hit)
-        prod = spec_img[0] * hit[1][0]
+        spec_t = _template_spectrum(t, shape)
+        prod = spec_img[0] * spec_t[0]
         for ch in range(1, len(spec_img)):
-            prod += spec_img[ch] * hit[1][ch]
+            prod += spec_img[ch] * spec_t[ch]
         c = fft.irfft2(prod, s=shape, workers=1)
         out.append(np.ascontiguousarray(c[: h - t.shape[0] + 1, : w - t.shape[1] + 1],
                                         np.float32))
@@ -260,10 +274,9 @@ def prepare_outline_search(camera: Camera, holder: Holder, params: FeatureParams
         return
     w, h = camera.image_size_px
     s8 = int(params.roi_downscale)
-    coarse = np.zeros(((h // s8) // 2, (w // s8) // 2, 2), np.float32)
-    tpls = [t[0] for t in _coarse_templates(camera, holder, params)[1]]
-    if all(t.shape[0] <= coarse.shape[0] and t.shape[1] <= coarse.shape[1] for t in tpls):
-        correlate_templates(coarse, tpls)
+    shape = _fft_shape((h // s8) // 2, (w // s8) // 2)   # match_outline's coarse field
+    for t in _coarse_templates(camera, holder, params)[1]:
+        _template_spectrum(t[0], shape)
 
 
 def match_outline(small: np.ndarray, camera: Camera, holder: Holder, params: FeatureParams):
