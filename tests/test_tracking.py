@@ -458,7 +458,8 @@ def test_deferred_reanchor_that_disagrees_falls_back_on_take_up(changing_break, 
         assert r.mode == "lost" and r.pose is None
         assert r.fallback_reason.startswith("re-anchor (frame 1):")
         assert r.fallback_reason.endswith("full measurement started (applied at frame 5)")
-        assert tracker._pending is None and tracker._pending_full[:2] == (5, 3)
+        full = tracker._pending_full
+        assert tracker._pending is None and (full.at, full.frame) == (5, 3)
 
 
 def test_deferred_fall_back_is_applied_lag_frames_later_by_any_worker(sequence):
@@ -755,3 +756,19 @@ def test_the_first_offsets_come_from_the_lines_at_the_measured_pose(changing_bre
     m = tracker._measured & ref._measured
     np.testing.assert_allclose(tracker._offset_mm[m], ref._offset_mm[m], atol=0.05)
     assert tracker.update(frames[1]).mode == "track"
+
+
+def test_frame_times_keep_what_is_referred_to():
+    """The times of frames still referred to (the last pose's, a pending job's) stay however
+    far back they lie; the others go, so a long track keeps a few entries."""
+    tr = Tracker(CAM, default_holder(), "dm+", limits=SHARP)
+    tr._stamp(0, 0.0)
+    tr._last_k = 0                     # a last pose on frame 0, kept while nothing is tracked
+    for k in range(1, 3000):
+        tr._stamp(k, 0.1 * k)
+    assert tr._time(0) == 0.0 and tr._time(2998) == pytest.approx(299.8)
+    assert len(tr._frame_t) <= 3
+    tr._last_k = 2999                  # a pose on frame 2999: frame 0 is no longer needed
+    tr._stamp(3000, 300.0)
+    tr._stamp(3001, 300.1)
+    assert 0 not in tr._frame_t and tr._time(2999) == pytest.approx(299.9)

@@ -655,6 +655,32 @@ class PoseFilter:
         return self.pose, ""
 
 
+@dataclass
+class _DeferredAnchor:
+    """A re-anchor measured beside the tracking (module doc, "Deferred re-anchors")."""
+
+    at: int                 #: the frame it is applied on
+    future: Future          #: its band fit
+    frame: int              #: the tracked frame it measures
+    pose: Pose              #: that frame's tracked pose
+    std: np.ndarray         #: and its std
+    lines: np.ndarray       #: the lines tracking found there (ideal pixels)
+    used: np.ndarray        #: which edges they are
+
+
+@dataclass
+class _DeferredFull:
+    """A fall-back measured beside the tracking (module doc, "Deferred fall-backs")."""
+
+    at: int                 #: the frame it is applied on
+    frame: int              #: the frame measured
+    future: Future          #: its full measurement
+    image: np.ndarray | None   #: that frame, for the offsets (methods that carry them)
+    last: Pose | None       #: the last pose before it
+    last_k: int             #: that pose's frame
+    vel: tuple | None       #: the motion per unit of time then
+
+
 class Tracker:
     """Pose of the holder in a sequence of frames (module doc).
 
@@ -760,12 +786,8 @@ class Tracker:
         self._filter_k: int | None = None   # the frame the filter last took
         self._rms_ref = 0.0   # corner RMS of the last accepted full measurement (px)
         self._n = 0
-        #: a deferred re-anchor: (frame to apply it on, its future, the measured frame's
-        #: (index, tracked pose, std, lines, edges used))
-        self._pending: tuple | None = None
-        #: a deferred fall-back: (frame to apply it on, the frame measured, its future, that
-        #: frame, the last pose before it, that pose's frame, the motion per frame then)
-        self._pending_full: tuple | None = None
+        self._pending: _DeferredAnchor | None = None
+        self._pending_full: _DeferredFull | None = None
         if self.filter is not None:
             self.filter.reset()
 
@@ -813,8 +835,8 @@ class Tracker:
         reason = "first frame" if k == 0 else "no previous pose"
         # a deferred fall-back (module doc): taken up on its frame, pending before it
         full, note_full, fresh = None, "", False
-        if self._pending_full is not None and k >= self._pending_full[0]:
-            j = self._pending_full[1]
+        if self._pending_full is not None and k >= self._pending_full.at:
+            j = self._pending_full.frame
             why, full = self._take_full(k, timings)
             if not why:
                 note_full, fresh = f"full measurement of frame {j} applied", True
@@ -825,8 +847,8 @@ class Tracker:
                 self._last, reason = None, why
         pending = self._pending_full
         if pending is not None:
-            note_full = (f"full measurement of frame {pending[1]} pending (applied at frame "
-                         f"{pending[0]})")
+            note_full = (f"full measurement of frame {pending.frame} pending (applied at "
+                         f"frame {pending.at})")
         # a deferred re-anchor due on this frame is taken up before the frame is tracked
         why, note = self._take_anchor(k, timings) if self._last is not None else ("", "")
         if why:
@@ -871,7 +893,7 @@ class Tracker:
         # full measurement (a pending re-anchor belongs to the poses before it: a band fit
         # still queued on the worker is not run, one running is left to finish unread)
         if self._pending is not None:
-            self._pending[1].cancel()
+            self._pending.future.cancel()
         self._pending = None
         if k > 0 and self.tp.anchor_lag > 0 and self.tp.defer_fallbacks:
             return self._start_full(img, k, reason, timings, t0)
@@ -903,8 +925,20 @@ class Tracker:
                 raise InputError(f"frame times must be finite and increase: frame {k} at "
                                  f"{t_s} s after {prev} s")
             self._frame_t[k] = t
-            # the deferred jobs look back a few frames at most
-            self._frame_t.pop(k - 1000, None)
+            self._prune_times(k)
+
+    def _prune_times(self, k: int) -> None:
+        """Keep the times of the frames something refers to (this and the previous frame,
+        the last pose's, the filter's, the deferred jobs'), however far back they lie (a
+        holder out of sight for minutes while a fall-back is pending); forget the rest."""
+        keep = {k, k - 1, self._last_k, self._filter_k}
+        if self._pending is not None:
+            keep.add(self._pending.frame)
+        if self._pending_full is not None:
+            keep |= {self._pending_full.frame, self._pending_full.last_k}
+        keep.discard(None)
+        if len(self._frame_t) > len(keep):
+            self._frame_t = {x: t for x, t in self._frame_t.items() if x in keep}
 
     def _time(self, k: int) -> float:
         """Frame ``k``'s time: its timestamp (s) or, without timestamps, its index."""
@@ -974,7 +1008,8 @@ class Tracker:
         # the last pose and motion before the failure carry the measured pose to frame ``at``;
         # the frame itself is kept for the offsets of a method that has them (dm+b, dm+r)
         keep = np.array(img, copy=True) if self._refines else None
-        self._pending_full = (at, k, fut, keep, self._last, self._last_k, self._vel)
+        self._pending_full = _DeferredFull(at, k, fut, keep, self._last, self._last_k,
+                                           self._vel)
         return self._no_pose(k, f"{reason}; full measurement started (applied at frame "
                                 f"{at})", None, timings, t0, forget=False)
 
@@ -984,8 +1019,8 @@ class Tracker:
         frame tracked from that pose carried to it by the motion per frame of the poses
         tracked since (or before the failure; or, unknown, from the last pose before it to
         the measured one); or ``(reason, measurement or None)`` when it cannot be applied."""
-        _, j, fut, img_j, last, last_k, vel = self._pending_full
-        self._pending_full = None
+        p, self._pending_full = self._pending_full, None
+        j, fut, img_j, last, last_k, vel = p.frame, p.future, p.image, p.last, p.last_k, p.vel
         t = time.perf_counter()
         try:
             m = fut.result()
@@ -1237,7 +1272,8 @@ class Tracker:
         lines, used = lines.copy(), used.copy()
         fut = self._submit(band_fit, img, *self._band_args(res.pose, used))
         at = res.frame + self.tp.anchor_lag
-        self._pending = (at, fut, (res.frame, res.pose, res.std_dof.copy(), lines, used))
+        self._pending = _DeferredAnchor(at, fut, res.frame, res.pose, res.std_dof.copy(),
+                                        lines, used)
         res.anchor = "; ".join(filter(None, [res.anchor,
                                              f"re-anchor started (applied at frame {at})"]))
 
@@ -1266,10 +1302,10 @@ class Tracker:
     def _take_anchor(self, k: int, timings: dict) -> tuple[str, str]:
         """Take up the deferred re-anchor due on frame ``k`` (waiting for its band fit):
         ``(reason for a full measurement or "", note for this frame)``."""
-        if self._pending is None or k < self._pending[0]:
+        if self._pending is None or k < self._pending.at:
             return "", ""
-        _, fut, (j, pose, std, lines, used) = self._pending
-        self._pending = None
+        p, self._pending = self._pending, None
+        fut, j, pose, std, lines, used = p.future, p.frame, p.pose, p.std, p.lines, p.used
         t = time.perf_counter()
         try:
             est, q, fit_ms = fut.result()
