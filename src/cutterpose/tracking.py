@@ -30,115 +30,23 @@ contour lies, and the region search, threshold and contour segmentation are skip
    that fails any of them (a jump, an occluder, lost edges) falls back to the full
    measurement and says why.
 
-**Broken edges** (``method="dm+b"``, the default of ``measure``; ``dm+r`` in part): the edges
-the tracker finds are the innermost rise of the broken pocket edge, which lies off the design
-edge (the sharp intersection of face and wall) that ``dm+b`` measures the pose of. A uniform
-offset ``delta`` of the 400 x 180 mm contour is not a rigid motion: fitted with the design
-model it reads as a depth error of ``-Z delta / 128 mm`` (computed at 600 and 900 mm; the
-0.28 mm measured on the pbr ``new`` approach at 900 mm -> 2.0 mm, where the ``dm+`` tracker was
-2.15 mm off), i.e. a correction *proportional to the distance*. A
-correction carried as a rigid transform in the holder frame (the earlier tracker) therefore
-drifts as the robot closes in. Instead the tracker fits a *moved model*: design edge ``k``
-shifted by ``d_k`` mm along its outward normal in the face plane
-(:func:`offset_polygon_mm`), whose image is the tracked edge at every distance if ``d_k`` is a
-length on the holder; then the fitted pose is the design edge's directly.
+**Broken edges** (``method="dm+b"``, the default): the edges tracking finds are the innermost
+rise of the broken pocket edge, off the design edge that ``dm+b`` measures. The tracker fits
+a *moved model* instead: design edge ``k`` shifted by ``d_k`` mm along its outward normal in
+the face plane (:func:`offset_polygon_mm`), the offsets measured at full measurements and
+re-measured (*re-anchored*) by the band fit as the view changes, the edge model predicting
+their change between anchors; a tracked pose is then the design edge's.
 
-* **measuring the offsets** (an *anchor*): at a ``dm+b`` pose ``T`` and this frame's tracked
-  lines, ``d_k`` is the least-squares shift that puts both projected ends of design edge ``k``
-  on its line (Gauss-Newton on one unknown per edge); at the full measurement (first frame,
-  fall-backs) from the full ``dm+b`` pose. ``TrackParams.anchor_ends`` gives each end its own
-  shift instead (a worn edge's break varies along it, so its tracked line is tilted against
-  the design edge): closer to the full measurement on worn approaches, but an edge bent by an
-  occluder at the anchor keeps that tilt (docs/RESULTS.md section 13; not the default);
-* **re-anchoring** (``dm+b`` only): ``d_k`` is not quite a constant length: measured against
-  the true pose on every frame of the 900 -> 600 mm approaches, the mean offset fell from 0.16
-  to 0.08 mm (analytic ``new``) and from 0.28 to 0.22 mm (pbr ``new``), per edge close to
-  ``a_k + b / (px per mm)`` with ``b`` ~0.6 px (a part fixed in pixels: the edge detector's
-  response to the blurred profile) -- rms about that model 0.007-0.012 mm, about a constant
-  length 0.037 mm. And one anchor carries its pose's error (the std of ``dm+b`` there) to every
-  later frame, where ``dm+b``'s std is smaller as the holder comes closer. So on a tracked frame
-  whose distance ``|t|`` differs from the last anchor's by more than ``anchor_scale_change``
-  (5 %; or every ``anchor_every`` frames), and on the ``anchor_warmup`` (2) frames after a
-  full measurement, the band fit :func:`cutterpose.solvers.edge_band.measure_band` runs from
-  the tracked pose (``anchor_passes`` passes; no region search, outline or ``dm+``) and is
-  judged by ``dm+b``'s own verdict (:func:`cutterpose.pipeline.band_verdict`). The offsets it
-  gives are blended into those carried with the weight ``max(anchor_gain, 1 / n)`` (``n``:
-  anchors since the full measurement; a fading-memory average, the steady-state gain of a
-  random-walk Kalman filter, so that the anchors' independent errors average out while the
-  slow change is followed), and the frame's edges are fitted again with them and checked as
-  every tracked frame (step 4);
-* **a re-anchor passes no pose of its own**: when the band's pose and the tracked pose differ
-  in any DOF by more than ``anchor_gate_sigma`` (5) times their combined std, one of them is
-  wrong, and the frame falls back to the full measurement with the reason; a band fit that its
-  verdict refuses leaves the offsets as they were (``TrackResult.anchor`` says so) and is
-  tried again after the same change of view;
-* **the view between anchors** (``TrackParams.view_model``): on a rounded edge the innermost
-  rise lies where the fillet's shading turns, and that place moves with the viewing
-  direction: on a path-traced worn approach the offsets measured at the true pose fell by
-  ~0.4 mm from 890 to 600 mm, which, carried as lengths, read as a depth error growing
-  between anchors (docs/RESULTS.md sections 13 and 14). The edge model
-  (:mod:`cutterpose.image.edge_model`: its innermost rise, nominal look, the band fit's median
-  radius and edge shape) predicts that change. At an anchor the tracker keeps the part of
-  each end's offset the model does not explain and the model's slope along the line of sight
-  (the camera ``VIEW_STEP`` closer); on each frame it adds the model's offsets at the frame's
-  distance (linear, up to ``VIEW_REACH`` from the anchor's; the model evaluated at each
-  frame's own pose would add that pose's rotation noise to the offsets);
-* **edges without an offset**: an edge that no anchor has measured (hidden then, by slurry,
-  the cutter or a chip) carries the others' median offset, millimetres off on a worn holder.
-  Its position counts as far as the measured offsets agree, its direction in full
-  (:meth:`Tracker._weigh_unmeasured`), and the next anchor measures it;
-* **std**: a tracked pose inherits the error of the pose its offsets were measured at, so its
-  std is the fit's and the last anchor's ``dm+b`` std in quadrature.
-* **deferred re-anchors** (``TrackParams.anchor_lag = L > 0``): the band fit takes ~15 tracked
-  frames' time, so with ``L = 0`` the frame it is due on waits ~200 ms (two frames of a 10 fps
-  camera). With ``L > 0`` that frame is returned at once with the offsets carried, the band
-  fit of its image and tracked pose runs beside the tracking (``Tracker(...,
-  anchor_worker=)``: ``"process"``, the default, a worker process that gets the frame through
-  shared memory and runs on another core; ``"thread"``, a background thread, which shares the
-  interpreter lock with the tracking and so overlaps it only where NumPy and OpenCV release
-  it; ``"inline"``, on frame ``j`` itself), and its result is taken up at the start of frame
-  ``j + L`` (waiting for it if it is not done): the gate against frame ``j``'s tracked pose,
-  the offsets measured from frame ``j``'s tracked edges at the band's pose, and from frame
-  ``j + L`` on the edges are fitted with them. The frame a result is applied on is fixed, so
-  the poses do not depend on the machine's speed or on the worker: they are the same with
-  each. A gate failure makes frame ``j + L`` a full measurement with the
-  reason; a full measurement in between drops the pending result. ``TrackResult.anchor``
-  says "re-anchor started" on frame ``j`` and "re-anchored (frame j)" on frame ``j + L``.
-* **deferred fall-backs** (``anchor_lag = L > 0`` and ``TrackParams.defer_fallbacks``, the
-  default then): a frame ``j`` the tracking cannot follow needs a full measurement (~250 ms
-  on a worn holder), which would put the next two or three frames of a 10 fps camera behind.
-  It runs on the same worker instead, and frame ``j`` is answered at once without a pose
-  (``"lost"``, the reason and "full measurement started (applied at frame j + L)"). The
-  frames up to ``j + L`` are tracked meanwhile from the last pose (moved on by the motion per
-  frame over the gap; ``anchor`` says "full measurement of frame j pending"), or have no pose
-  when that fails too; no re-anchor starts while it is pending. At ``j + L`` the measurement
-  is taken up as an inline one would be (the offsets from frame ``j``'s edges at its pose;
-  ``TrackResult.measurement`` is frame ``j``'s, ``anchor`` says "full measurement of frame j
-  applied"), and frame ``j + L`` is tracked from the measured pose carried to it by the
-  motion per frame of the poses tracked since ``j`` (or before the failure). Not from the
-  last tracked pose: it rests on the offsets before, and with the new ones it is off by
-  their change. A refused measurement is said ("not applied") and the tracking goes on, or, with
-  no pose since ``j``, the next measurement starts. The frames are fixed, so the poses do not
-  depend on the worker or the machine's speed. The first frame is always measured on the
-  spot (there is nothing to track from).
-* **frame times** (``Tracker.update(image, t_s=)``): without them each update is one step
-  of the constant-velocity prediction. A camera driver that hands over the newest frame and
-  skips those that came while the tracker was busy gives each frame's timestamp: the motion
-  is then kept per second and carried over any gap (the same twist in each second). The
-  deferred jobs are still scheduled in updates (``anchor_lag`` updates later); the temporal
-  filter steps by the frames' times too.
+**Jobs beside the tracking** (``TrackParams.anchor_lag = L > 0``): re-anchors and fall-backs
+(full measurements) run on a worker and are applied at the start of frame ``j + L``, fixed,
+so the poses do not depend on the worker or the machine's speed; a fall-back's frame is
+answered at once without a pose and the frames until ``j + L`` are tracked from the last
+pose. **Frame times** (``update(image, t_s=)``) keep the motion per second over skipped
+frames. **Temporal filter** (optional): a constant-velocity alpha-beta filter on SE(3),
+reported beside the raw pose, never instead of it, reset at a jump.
 
-``method="dm+"`` tracks the design model itself (no offsets, no re-anchoring): right for a
-sharp edge (declare it, ``QualityLimits.edge_break_mm = 0``; otherwise its verdict carries a
-break it cannot see and refuses) or a binned camera that cannot resolve the band.
-
-**Temporal filter** (optional, ``filter=True``): an alpha-beta filter, the steady-state Kalman
-filter of a constant-velocity model, on SE(3): state ``T`` and a twist ``xi`` per unit of
-time (a frame, or a second with frame times); over a step ``dt`` predict
-``T- = Exp(dt xi) T``; innovation ``nu = Log(Z T-^{-1})`` for the measured pose ``Z``;
-update ``T = Exp(alpha nu) T-``, ``xi = xi + beta nu / dt``. It is reported *beside* the raw pose,
-never instead of it, and it is reset to the raw pose (velocity zero) after a fall-back or when
-the innovation exceeds the gate, so that it never hides a jump.
+All of this in detail, with the conventions of frames, times and deferred jobs:
+``docs/tracking.md`` (its sections are cited below as "docs/tracking.md, ...").
 
 Convention:
     Poses ``T_cam_holder`` as in :mod:`cutterpose.geometry.pose` (``x_cam = R x_holder + t``,
@@ -466,7 +374,7 @@ class TrackParams:
     gate_mm: float = 5.0              #: filter reset when the innovation exceeds these
     gate_deg: float = 2.0
     #: ``dm+b``: the tracked edges' offsets from the design edge are measured again (a band
-    #: fit from the tracked pose, module doc) once the distance to the holder has changed by
+    #: fit from the tracked pose, docs/tracking.md) once the distance to the holder has changed by
     #: this fraction since the last measurement of them (``math.inf``: never) ...
     anchor_scale_change: float = 0.05
     anchor_every: int = 0             #: ... or every this many frames (0: no such rule)
@@ -492,18 +400,18 @@ class TrackParams:
     #: beyond, one of them is wrong and the frame is measured in full
     anchor_gate_sigma: float = 5.0
     #: a re-anchor's band fit (~200 ms) runs beside the tracking and its offsets are applied
-    #: this many frames after the frame it was measured on (module doc, "Deferred
-    #: re-anchors"); 0: on that frame itself, which then waits for the fit
+    #: this many frames after the frame it was measured on (docs/tracking.md, "Jobs beside
+    #: the tracking"); 0: on that frame itself, which then waits for the fit
     anchor_lag: int = 0
     #: with ``anchor_lag > 0``, a frame the tracking cannot follow is measured in full beside
-    #: the tracking too (module doc, "Deferred fall-backs"): it is answered at once without a
-    #: pose, the next ones are tracked from the last pose until the measurement is applied
+    #: the tracking too (docs/tracking.md, "Jobs beside the tracking"): it is answered at
+    #: once without a pose, the next ones are tracked from the last pose until it is applied
     #: ``anchor_lag`` frames on, instead of waiting ~250 ms for it; False: measured on the
     #: frame itself
     defer_fallbacks: bool = True
     #: ``dm+b``: the offsets follow the view between anchors as the edge model says a broken
-    #: edge of the band fit's radius images (module doc, "Broken edges"); False: a length on
-    #: the holder, constant until the next anchor
+    #: edge of the band fit's radius images (docs/tracking.md, "Broken edges: the offsets");
+    #: False: a length on the holder, constant until the next anchor
     view_model: bool = True
 
     def for_camera(self, camera: Camera) -> TrackParams:
@@ -541,9 +449,9 @@ class TrackResult:
     ----------
     frame : the frame's index (0-based, in the order given to the tracker).
     mode : ``"track"`` (predicted edges), ``"full"`` (the full measurement: first frame or a
-        fall-back) or ``"lost"`` (no pose; also a deferred fall-back's frame, module doc).
+        fall-back) or ``"lost"`` (no pose; also a deferred fall-back's frame, docs/tracking.md).
     pose : the raw per-frame pose (None when lost); ``std_dof`` its std per DOF (tracking
-        with ``dm+b``: the fit's and the last anchor's in quadrature, module doc).
+        with ``dm+b``: the fit's and the last anchor's in quadrature, docs/tracking.md).
     ok : the pose passed the checks (tracking) or the verdict (full).
     fallback_reason : why tracking was not used on this frame ("" when tracked).
     filtered_pose : the temporal filter's pose (None without filter or pose); ``filter_reset``
@@ -609,7 +517,7 @@ class TrackResult:
 
 
 class PoseFilter:
-    """Constant-velocity alpha-beta filter on SE(3) (module doc)."""
+    """Constant-velocity alpha-beta filter on SE(3) (docs/tracking.md, "Temporal filter")."""
 
     def __init__(self, alpha: float = 0.5, beta: float = 0.5 ** 2 / 1.5, gate_mm: float = 5.0,
                  gate_deg: float = 2.0):
@@ -657,7 +565,8 @@ class PoseFilter:
 
 @dataclass
 class _DeferredAnchor:
-    """A re-anchor measured beside the tracking (module doc, "Deferred re-anchors")."""
+    """A re-anchor measured beside the tracking (docs/tracking.md, "Jobs beside the
+    tracking")."""
 
     at: int                 #: the frame it is applied on
     future: Future          #: its band fit
@@ -670,7 +579,8 @@ class _DeferredAnchor:
 
 @dataclass
 class _DeferredFull:
-    """A fall-back measured beside the tracking (module doc, "Deferred fall-backs")."""
+    """A fall-back measured beside the tracking (docs/tracking.md, "Jobs beside the
+    tracking")."""
 
     at: int                 #: the frame it is applied on
     frame: int              #: the frame measured
@@ -691,7 +601,7 @@ class Tracker:
         as :func:`~cutterpose.pipeline.measure`'s). With ``dm+b`` (and ``dm+r``) the tracker
         fits the design contour moved edge by edge onto the edges it tracks (the innermost
         rise of the broken edge), the offsets measured at the full measurement; ``dm+b``
-        measures them again from the tracked pose as the view changes (module doc, "Broken
+        measures them again from the tracked pose as the view changes (docs/tracking.md, "Broken
         edges").
     params, limits : the full measurement's image parameters and quality limits (default: an
         approach from 940 to 580 mm, :func:`approach_params` and :func:`approach_limits`).
@@ -833,7 +743,7 @@ class Tracker:
         self._n += 1
         timings: dict[str, float] = {}
         reason = "first frame" if k == 0 else "no previous pose"
-        # a deferred fall-back (module doc): taken up on its frame, pending before it
+        # a deferred fall-back (docs/tracking.md): taken up on its frame, pending before it
         full, note_full, fresh = None, "", False
         if self._pending_full is not None and k >= self._pending_full.at:
             j = self._pending_full.frame
@@ -982,7 +892,7 @@ class Tracker:
         # a method that refines dm+'s pose with more than the corners (dm+b: the design
         # edge from the bands): the tracker follows the edges the corners come from (the
         # innermost rise), so it measures here, at the measured design pose, how far
-        # each of them lies from the design edge (module doc, "Broken edges")
+        # each of them lies from the design edge (docs/tracking.md, "Broken edges")
         refines = self._refines
         start = m.estimate.info.get("start") if refines and m.estimate else None
         # the residual the tracked edges are held to: the corners' (dm+'s, for dm+b,
@@ -999,9 +909,9 @@ class Tracker:
     # -- deferred fall-backs -------------------------------------------------------------
     def _start_full(self, img: np.ndarray, k: int, reason: str, timings: dict,
                     t0: float) -> TrackResult:
-        """A fall-back measured beside the tracking (module doc, "Deferred fall-backs"): this
-        frame is answered at once without a pose, the next ones are tracked from the last
-        pose meanwhile."""
+        """A fall-back measured beside the tracking (docs/tracking.md, "Jobs beside the
+        tracking"): this frame is answered at once without a pose, the next ones are tracked
+        from the last pose meanwhile."""
         at = k + self.tp.anchor_lag
         fut = self._submit(full_measurement, img, self.camera, self.holder, self.method,
                            self.params, self.limits, self.edge_look)
@@ -1230,11 +1140,11 @@ class Tracker:
         return "", "re-anchored"
 
     def _reanchor(self, img: np.ndarray, res: TrackResult, timings: dict) -> TrackResult | str:
-        """Measure the design edge again on a tracked frame (module doc, "Broken edges"): the
-        band fit from the tracked pose, judged by its own verdict and against the tracked
-        pose; the offsets measured from this frame's tracked edges at the band's pose and the
-        edges fitted again with them. The tracked frame (or, when the two poses disagree, the
-        reason for a full measurement)."""
+        """Measure the design edge again on a tracked frame (docs/tracking.md, "Broken
+        edges"): the band fit from the tracked pose, judged by its own verdict and against the
+        tracked pose; the offsets measured from this frame's tracked edges at the band's pose
+        and the edges fitted again with them. The tracked frame (or, when the two poses
+        disagree, the reason for a full measurement)."""
         t = time.perf_counter()
         # whatever the outcome, the next attempt after the view has changed as much again
         self._anchor_t_mm, self._anchor_frame = res.pose.t_mm.copy(), res.frame
@@ -1264,7 +1174,7 @@ class Tracker:
         return res
 
     def _start_anchor(self, img: np.ndarray, res: TrackResult) -> None:
-        """A deferred re-anchor of this tracked frame (module doc): the band fit started
+        """A deferred re-anchor of this tracked frame (docs/tracking.md): the band fit started
         (in the background thread, or here), its result applied ``anchor_lag`` frames on."""
         self._anchor_t_mm, self._anchor_frame = res.pose.t_mm.copy(), res.frame
         self._attempts += 1
