@@ -155,7 +155,19 @@ def band(rows: list[dict]) -> None:
 
 
 def summary(name: str, rows: list[dict], truth: dict) -> None:
+    """The run's lines: modes and speed of the tracked frames, the pace when played at a
+    frame rate, the fall-backs, the accuracy against the full measurement, and the
+    sequence's events (a jump, dropped frames)."""
     tr = [r for r in rows if r["mode"] == "track"]
+    _tracked_lines(name, rows, tr)
+    if "latency_ms" in rows[0]:
+        _pace_lines(rows)
+    _fallback_lines(rows)
+    _accuracy_lines(rows, tr)
+    _event_lines(rows, truth.get("sequence", {}))
+
+
+def _tracked_lines(name: str, rows: list[dict], tr: list[dict]) -> None:
     modes = {m: sum(r["mode"] == m for r in rows) for m in ("track", "full", "lost")}
     print(f"{name}: {len(rows)} frames, {modes['track']} tracked, {modes['full']} full "
           f"(first + fall-backs), {modes['lost']} lost")
@@ -183,16 +195,21 @@ def summary(name: str, rows: list[dict], truth: dict) -> None:
             print(f"  deferred: started on {[r['frame'] for r in started]}; waited for at "
                   f"take-up median {np.median(wait) if len(wait) else np.nan:.1f} ms (max "
                   f"{wait.max() if len(wait) else np.nan:.1f})")
-    if "latency_ms" in rows[0]:
-        lat = np.array([r["latency_ms"] for r in rows[1:]])
-        fps = rows[0]["fps"]
-        if rows[-1].get("skipped_before"):
-            print(f"  newest-frame driver: {rows[-1]['skipped_before']} frames skipped, "
-                  f"{len(rows)} answered")
-        print(f"  played at {fps:g} fps: latency after the first frame median "
-              f"{np.median(lat):.1f} ms (p90 {np.percentile(lat, 90):.1f}, max {lat.max():.1f}); "
-              f"answered later than one frame ({1e3 / fps:.0f} ms): {int(np.sum(lat > 1e3 / fps))}"
-              f" of {len(lat)}")
+
+
+def _pace_lines(rows: list[dict]) -> None:
+    lat = np.array([r["latency_ms"] for r in rows[1:]])
+    fps = rows[0]["fps"]
+    if rows[-1].get("skipped_before"):
+        print(f"  newest-frame driver: {rows[-1]['skipped_before']} frames skipped, "
+              f"{len(rows)} answered")
+    print(f"  played at {fps:g} fps: latency after the first frame median "
+          f"{np.median(lat):.1f} ms (p90 {np.percentile(lat, 90):.1f}, max {lat.max():.1f}); "
+          f"answered later than one frame ({1e3 / fps:.0f} ms): {int(np.sum(lat > 1e3 / fps))}"
+          f" of {len(lat)}")
+
+
+def _fallback_lines(rows: list[dict]) -> None:
     # deferred fall-backs (TrackParams.defer_fallbacks with anchor_lag > 0): the frame has no
     # pose; those before the take-up are tracked meanwhile, or have none either
     started = [r for r in rows if r["reason"].endswith(")") and
@@ -215,7 +232,10 @@ def summary(name: str, rows: list[dict], truth: dict) -> None:
             reasons.setdefault(key, []).append(r["frame"])
     for k, v in reasons.items():
         print(f"  fall-back x{len(v)} (frames {v}): {k}")
-    if "full_ok" not in rows[0]:
+
+
+def _accuracy_lines(rows: list[dict], tr: list[dict]) -> None:
+    if "full_ok" not in rows[0]:   # run without the full measurement (--no-full)
         return
     full_cpu = np.array([r["full_cpu_ms"] for r in rows])
     nok = sum(r["full_ok"] for r in rows)
@@ -223,7 +243,7 @@ def summary(name: str, rows: list[dict], truth: dict) -> None:
           f"{nok}/{len(rows)}")
     if tr:
         print(f"  ratio tracked / full (medians, same run): "
-              f"{np.median(cpu) / np.median(full_cpu):.3f}")
+              f"{np.median([r['cpu_ms'] for r in tr]) / np.median(full_cpu):.3f}")
         zs = [r["max_z"] for r in tr]
         inb = sum(bool(r.get("in_band")) for r in tr)
         own = sum(r["band_from"] == r["frame"] for r in tr)
@@ -259,7 +279,9 @@ def summary(name: str, rows: list[dict], truth: dict) -> None:
         if len(fe):
             print("  largest |error| full (accepted, same frames): " + ", ".join(
                 f"{n} {v:.3f}" for n, v in zip(DOF_NAMES, fe.max(axis=0))))
-    seq = truth.get("sequence", {})
+
+
+def _event_lines(rows: list[dict], seq: dict) -> None:
     if seq.get("jump_at") is not None:
         ja = seq["jump_at"]
         after = [r for r in rows if r["frame"] >= ja]
@@ -273,6 +295,8 @@ def summary(name: str, rows: list[dict], truth: dict) -> None:
             if nx:
                 print(f"  frame {d} dropped: frame {nx[0]['frame']} {nx[0]['mode']} "
                       f"({nx[0]['passes']} passes)")
+
+
 
 
 def main() -> int:
