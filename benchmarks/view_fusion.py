@@ -136,11 +136,12 @@ def main(argv=None) -> int:
         for rho, scale in [(r, c) for c in a.scale for r in a.rho]:
             print(f"\nfused with inter-view correlation {rho}, variance x {scale}:")
             print("| views | holders with a fused pose | accepted | p95 rot / trans over "
-                  "accepted | max | wrong (> 1 mm or 0.5 deg) | 3 sigma covers (all) |")
-            print("|---|---|---|---|---|---|---|")
+                  "accepted | max | wrong (> 1 mm or 0.5 deg) | 3 sigma covers (all) | "
+                  "median error / 3 sigma, rot / pos (all) |")
+            print("|---|---|---|---|---|---|---|---|")
             for k in range(1, n_views + 1):
                 n_pose = n_acc = wrong = covered = 0
-                rots, trans = [], []
+                rots, trans, q_rot, q_pos = [], [], [], []
                 for h in by_h.values():
                     pcs = []
                     for v in sorted(h)[:k]:
@@ -161,6 +162,8 @@ def main(argv=None) -> int:
                     er, et, _ = errors(f.pose)
                     ok = f.position_3sigma_mm <= POS_TOL_MM and f.angle_3sigma_deg <= ANG_TOL_DEG
                     covered += int(et <= f.position_3sigma_mm and er <= f.angle_3sigma_deg)
+                    q_rot.append(er / f.angle_3sigma_deg)
+                    q_pos.append(et / f.position_3sigma_mm)
                     if ok:
                         n_acc += 1
                         rots.append(er)
@@ -170,7 +173,8 @@ def main(argv=None) -> int:
                        if rots else "-")
                 mx = f"{max(rots):.3f} / {max(trans):.3f}" if rots else "-"
                 print(f"| {k} | {n_pose} | {n_acc} of {len(by_h)} | {p95} | {mx} | {wrong} | "
-                      f"{covered} of {n_pose} |")
+                      f"{covered} of {n_pose} | {np.median(q_rot):.2f} / "
+                      f"{np.median(q_pos):.2f} |")
     return 0
 
 
