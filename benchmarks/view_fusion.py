@@ -156,10 +156,10 @@ def main(argv=None) -> int:
                         continue
                     f = fuse_poses(pcs, rho=rho)
                     if a.birge and f.dof:
-                        f = replace(f, pose=PoseCov(f.pose.pose,
-                                                    max(1.0, f.chi2 / f.dof) * f.pose.cov))
+                        f = replace(f, fused=PoseCov(f.fused.pose,
+                                                     max(1.0, f.chi2 / f.dof) * f.fused.cov))
                     n_pose += 1
-                    er, et, _ = errors(f.pose)
+                    er, et, _ = errors(f.fused)
                     ok = f.position_3sigma_mm <= POS_TOL_MM and f.angle_3sigma_deg <= ANG_TOL_DEG
                     covered += int(et <= f.position_3sigma_mm and er <= f.angle_3sigma_deg)
                     q_rot.append(er / f.angle_3sigma_deg)

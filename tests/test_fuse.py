@@ -31,8 +31,8 @@ def test_one_view_is_itself():
     C = _cov(rng)
     p = _draw(rng, C)
     f = fuse_poses([PoseCov(p, C)])
-    assert np.allclose(f.pose.pose.matrix, p.matrix, atol=1e-9)
-    assert np.allclose(f.pose.cov, C)
+    assert np.allclose(f.fused.pose.matrix, p.matrix, atol=1e-9)
+    assert np.allclose(f.fused.cov, C)
     assert f.dof == 0 and f.p_value == 1.0
 
 
@@ -44,10 +44,10 @@ def test_independent_views_give_the_information_sum_and_chi2():
     for _ in range(400):
         views = [PoseCov(_draw(rng, C), C) for C in covs]
         f = fuse_poses(views)
-        assert np.allclose(f.pose.cov, expect, rtol=1e-9, atol=1e-15)
+        assert np.allclose(f.fused.cov, expect, rtol=1e-9, atol=1e-15)
         chi2s.append(f.chi2)
-        d = np.concatenate([f.pose.pose.t_mm - TRUTH.t_mm,
-                            Rotation.from_matrix(f.pose.pose.R @ TRUTH.R.T).as_rotvec()])
+        d = np.concatenate([f.fused.pose.t_mm - TRUTH.t_mm,
+                            Rotation.from_matrix(f.fused.pose.R @ TRUTH.R.T).as_rotvec()])
         errs.append(d @ np.linalg.solve(expect, d))
     # both chi-square: the residuals with 12 degrees of freedom, the error with 6
     assert abs(np.mean(chi2s) - 12) < 1.0
@@ -61,8 +61,8 @@ def test_correlated_views_gain_less_and_rho_one_refuses():
     f0 = fuse_poses(views, rho=0.0)
     f5 = fuse_poses(views, rho=0.5)
     # equal covariances: C / n independent, C (1 + (n - 1) rho) / n equicorrelated
-    assert np.allclose(f0.pose.cov, C / 3)
-    assert np.allclose(f5.pose.cov, C * 2 / 3)
+    assert np.allclose(f0.fused.cov, C / 3)
+    assert np.allclose(f5.fused.cov, C * 2 / 3)
     with pytest.raises(InputError, match="singular"):
         fuse_poses(views, rho=1.0)
     with pytest.raises(InputError, match=r"\[0, 1\]"):
@@ -75,7 +75,7 @@ def test_a_shared_source_is_not_averaged_away():
     Cs = np.diag([0.1, 0.1, 0.1, 1e-4, 1e-4, 1e-4]) ** 2
     views = [PoseCov(_draw(rng, C), C) for _ in range(4)]
     f = fuse_poses(views, shared=[([np.eye(6)] * 4, Cs)])
-    assert np.allclose(f.pose.cov, C / 4 + Cs)
+    assert np.allclose(f.fused.cov, C / 4 + Cs)
 
 
 def test_disagreeing_views_are_reported():
@@ -118,6 +118,16 @@ def test_parts_add_up_to_the_fused_covariance():
     Cs = np.diag([0.1] * 3 + [1e-4] * 3) ** 2
     views = [PoseCov(_draw(rng, C), C) for C in covs]
     f = fuse_poses(views, rho=0.4, cov_ind=ind, shared=[([np.eye(6)] * 3, Cs)])
-    assert np.allclose(sum(f.parts.values()), f.pose.cov, rtol=1e-9, atol=1e-15)
+    assert np.allclose(sum(f.parts.values()), f.fused.cov, rtol=1e-9, atol=1e-15)
     assert np.allclose(f.parts["shared"], Cs)     # a shared source passes through whole
     assert set(f.parts) == {"measurement", "independent", "shared"}
+
+
+def test_to_dict_is_json():
+    import json
+    rng = np.random.default_rng(8)
+    C = _cov(rng)
+    f = fuse_poses([PoseCov(_draw(rng, C), C) for _ in range(2)])
+    d = json.loads(json.dumps(f.to_dict()))
+    assert d["views"] == 2 and d["dof"] == 6 and len(d["residuals_mm_deg"]) == 2
+    assert d["fused"]["frame_id"] == "base" and d["fused"]["child_frame_id"] == "holder"

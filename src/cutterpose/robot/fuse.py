@@ -44,7 +44,6 @@ References:
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -107,17 +106,17 @@ class FusedPose:
 
     Attributes
     ----------
-    pose : the fused pose with its covariance (:class:`PoseCov`).
+    fused : the fused pose with its covariance (:class:`PoseCov`).
     views : number of views fused.
     chi2, dof, p_value : the residuals' chi-square, its degrees of freedom ``6 (n - 1)`` and
         the probability of a larger one if the covariances are right (1 for one view).
     residuals : (n, 6) each view's perturbation from the fused pose (mm, deg).
     parts : the fused covariance's share of each term of ``Sigma`` (``measurement``,
         ``independent``, ``shared``): ``W Sigma_k W^T`` with ``W`` the estimator's gain; they
-        add up to ``pose.cov``.
+        add up to ``fused.cov``.
     """
 
-    pose: PoseCov
+    fused: PoseCov
     views: int
     chi2: float
     dof: int
@@ -132,14 +131,15 @@ class FusedPose:
 
     @property
     def position_3sigma_mm(self) -> float:
-        return self.pose.position_3sigma_mm
+        return self.fused.position_3sigma_mm
 
     @property
     def angle_3sigma_deg(self) -> float:
-        return self.pose.angle_3sigma_deg
+        return self.fused.angle_3sigma_deg
 
     def to_dict(self) -> dict:
-        return {"views": self.views, "chi2": self.chi2, "dof": self.dof,
+        return {"fused": self.fused.to_ros_dict(), "views": self.views, "chi2": self.chi2,
+                "dof": self.dof,
                 "p_value": self.p_value, "agree": self.agree,
                 "position_3sigma_mm": self.position_3sigma_mm,
                 "angle_3sigma_deg": self.angle_3sigma_deg,
@@ -213,7 +213,3 @@ def fuse_poses(estimates: list[PoseCov], rho: float = 0.0, *,
     parts = {k: W @ v @ W.T for k, v in terms.items()}
     return FusedPose(PoseCov(mean, cov), n, chi2, dof, p, res, parts)
 
-
-def angle_between_deg(a: Pose, b: Pose) -> float:
-    """The rotation angle of ``a.R b.R^T`` (deg)."""
-    return math.degrees(float(np.linalg.norm(Rotation.from_matrix(a.R @ b.R.T).as_rotvec())))
