@@ -468,20 +468,17 @@ def test_deferred_fall_back_is_applied_lag_frames_later_by_any_worker(sequence):
     last pose meanwhile (here 30 mm off: no pose either); the frame after tracks from that
     measurement's pose carried by the motion before the jump (and has it as its
     ``measurement``), and the tracking goes on. The same poses with the measurement in a
-    worker process (shared with the re-anchors or its own), a thread, or inline."""
+    worker process, a thread, or inline."""
     from cutterpose.tracking import TrackParams
 
     d, truth = sequence
     frames = [e["frame"] for e in truth["images"]]
     j = frames.index(JUMP)
     out = {}
-    for worker in ("process", "own process", "thread", "inline"):
-        tp = TrackParams(anchor_lag=2, fallback_worker=worker == "own process")
+    for worker in ("process", "thread", "inline"):
         with Tracker(CAM, default_holder(), "dm+", limits=SHARP, filter=True,
-                     anchor_worker=worker.split()[-1], track=tp) as tracker:
-            assert (tracker._full_executor is not None) == (worker == "own process")
+                     anchor_worker=worker, track=TrackParams(anchor_lag=2)) as tracker:
             out[worker] = [tracker.update(d / e["file"]) for e in truth["images"]]
-            assert tracker.ready(30.0)
     res = out["process"]
     modes = [r.mode for r in res]
     assert modes == ["full"] + ["track"] * (j - 1) + ["lost", "lost"] + \
@@ -499,7 +496,7 @@ def test_deferred_fall_back_is_applied_lag_frames_later_by_any_worker(sequence):
     assert r.measurement is not None and r.measurement.ok
     assert r.filter_reset.startswith("fall-back")
     np.testing.assert_array_equal(r.filtered_pose.t_mm, r.pose.t_mm)
-    for other in ("own process", "thread", "inline"):
+    for other in ("thread", "inline"):
         for a, b in zip(res, out[other]):
             assert (a.mode, a.fallback_reason, a.anchor) == (b.mode, b.fallback_reason,
                                                              b.anchor)

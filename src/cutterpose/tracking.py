@@ -409,10 +409,6 @@ class TrackParams:
     #: ``anchor_lag`` frames on, instead of waiting ~250 ms for it; False: measured on the
     #: frame itself
     defer_fallbacks: bool = True
-    #: with ``anchor_worker="process"`` and deferred fall-backs: the full measurements run in a
-    #: second worker process of their own, so that one never queues behind a band fit that is
-    #: running (one more process, ~0.3 GB); False: both kinds of job share one worker
-    fallback_worker: bool = False
     #: ``dm+b``: the offsets follow the view between anchors as the edge model says a broken
     #: edge of the band fit's radius images (docs/tracking.md, "Broken edges: the offsets");
     #: False: a length on the holder, constant until the next anchor
@@ -637,7 +633,6 @@ class Tracker:
         self.camera = camera or default_camera("table1")
         self.anchor_worker = anchor_worker
         self._executor: ThreadPoolExecutor | AnchorProcess | None = None
-        self._full_executor: AnchorProcess | None = None   # TrackParams.fallback_worker
         self.edge_look = edge_look
         self.holder = holder or default_holder()
         self.method = method
@@ -665,9 +660,6 @@ class Tracker:
             # measurement instead of delaying the first re-anchor
             w, h = self.camera.image_size_px
             self._executor = AnchorProcess((h, w), self.camera, self.holder, self.params)
-            if self._own_fallback_worker:
-                self._full_executor = AnchorProcess((h, w), self.camera, self.holder,
-                                                    self.params)
 
     def reset(self) -> None:
         """Forget the past: the next frame is measured in full."""
@@ -716,30 +708,20 @@ class Tracker:
         start-up. True when ready (at once without a worker process); False after
         ``timeout_s``, or when the worker failed to start (its jobs then fail and fall back
         with the reason)."""
-        for ex in (self._executor, self._full_executor):
-            warm = getattr(ex, "warm", None)
-            if warm is None:
-                continue
-            try:
-                warm.result(timeout_s)
-            except Exception:  # noqa: BLE001 - a timeout or a dead worker: not ready
-                return False
+        warm = getattr(self._executor, "warm", None)
+        if warm is None:
+            return True
+        try:
+            warm.result(timeout_s)
+        except Exception:  # noqa: BLE001 - a timeout or a dead worker: not ready
+            return False
         return True
 
-    @property
-    def _own_fallback_worker(self) -> bool:
-        """Deferred fall-backs run in a worker process of their own
-        (``TrackParams.fallback_worker``)."""
-        return (self.tp.fallback_worker and self.anchor_worker == "process"
-                and self.tp.anchor_lag > 0 and self.tp.defer_fallbacks)
-
     def close(self) -> None:
-        """End the deferred jobs' workers (process or thread), if they were started."""
-        for name in ("_executor", "_full_executor"):
-            ex = getattr(self, name)
-            if ex is not None:
-                setattr(self, name, None)
-                ex.shutdown(wait=True, cancel_futures=True)
+        """End the deferred re-anchors' worker (process or thread), if one was started."""
+        if self._executor is not None:
+            ex, self._executor = self._executor, None
+            ex.shutdown(wait=True, cancel_futures=True)
 
     def __enter__(self) -> Tracker:
         return self
@@ -1209,16 +1191,12 @@ class Tracker:
         """``fn(img, *args)`` (:func:`band_fit` or :func:`full_measurement`) on the
         ``anchor_worker``: its future."""
         if self.anchor_worker == "process":
-            name = ("_full_executor" if fn is full_measurement and self._own_fallback_worker
-                    else "_executor")
-            ex = getattr(self, name)
-            if ex is not None and ex.shape != img.shape:
+            if self._executor is not None and self._executor.shape != img.shape:
                 self.close()     # frames of another size than the camera's (a test's crop)
-                ex = None
-            if ex is None:
-                ex = AnchorProcess(img.shape, self.camera, self.holder, self.params)
-                setattr(self, name, ex)
-            return ex.submit(fn, img, *args)
+            if self._executor is None:
+                self._executor = AnchorProcess(img.shape, self.camera, self.holder,
+                                               self.params)
+            return self._executor.submit(fn, img, *args)
         if self.anchor_worker == "thread":
             if self._executor is None:
                 self._executor = ThreadPoolExecutor(1, thread_name_prefix="cutterpose-anchor")
