@@ -20,12 +20,12 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import sys
 from collections import defaultdict
 from dataclasses import replace
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from cutterpose.geometry.pose import Pose
 from cutterpose.robot.frames import PoseCov, cov_from_own_axes
@@ -34,11 +34,6 @@ from cutterpose.robot.fuse import fuse_poses, sqrt_psd
 POS_TOL_MM, ANG_TOL_DEG = 1.0, 0.3
 WRONG_MM, WRONG_DEG = 1.0, 0.5
 BUDGET_REASONS = ("error budget", "pose too uncertain")
-
-
-def _log_R(R: np.ndarray) -> np.ndarray:
-    from scipy.spatial.transform import Rotation
-    return Rotation.from_matrix(R).as_rotvec()
 
 
 def view_estimate(rec: dict) -> PoseCov | None:
@@ -52,12 +47,23 @@ def view_estimate(rec: dict) -> PoseCov | None:
     return T_base_cam @ m
 
 
+def error6(pc: PoseCov) -> np.ndarray:
+    """The error of an estimate of ``T_base_holder`` (base = the true holder frame): its
+    translation (mm) and rotation vector (rad), in the convention of its covariance."""
+    return np.concatenate([pc.pose.t_mm, Rotation.from_matrix(pc.pose.R).as_rotvec()])
+
+
 def errors(pc: PoseCov) -> tuple[float, float, np.ndarray]:
-    """(rotation error deg, translation error at the origin mm, 6-vector t, rotvec)."""
-    phi = _log_R(pc.pose.R)
-    t = pc.pose.t_mm
-    return math.degrees(float(np.linalg.norm(phi))), float(np.linalg.norm(t)), \
-        np.concatenate([t, np.degrees(phi)])
+    """(rotation error deg, translation error at the origin mm, 6-vector t mm, rotvec deg)."""
+    e = error6(pc)
+    e[3:] = np.degrees(e[3:])
+    return float(np.linalg.norm(e[3:])), float(np.linalg.norm(e[:3])), e
+
+
+def fusable(rec: dict) -> bool:
+    """A view that enters a fusion: accepted, or refused by its budget only (a pose whose
+    uncertainty is known)."""
+    return rec["accepted"] or any(s in (rec["reason"] or "") for s in BUDGET_REASONS)
 
 
 def icc(groups: list[np.ndarray]) -> np.ndarray:
@@ -83,18 +89,18 @@ def main(argv=None) -> int:
     a = ap.parse_args(argv)
     for path in a.runs:
         doc = json.loads(open(path).read())
-        by_h = defaultdict(dict)
+        by_h = defaultdict(dict)      # holder -> view -> (record, estimate or None)
         for rec in doc["images"]:
-            by_h[rec["holder_index"]][rec["view"]] = rec
+            by_h[rec["holder_index"]][rec["view"]] = (rec, view_estimate(rec))
         n_views = max(len(v) for v in by_h.values())
         print(f"\n## {doc['set']} ({doc['method']}, look {doc['edge_look'] or 'generic'}): "
               f"{len(by_h)} holders x {n_views} views")
         # single views
-        acc1 = [r for h in by_h.values() for r in h.values() if r["accepted"]]
+        acc1 = [pc for h in by_h.values() for r, pc in h.values() if r["accepted"]]
         print(f"single views accepted: {len(acc1)} of {sum(len(h) for h in by_h.values())}")
+        acc1 = [pc for pc in acc1 if pc is not None]
         out_r = out_p = 0
-        for r in acc1:
-            pc = view_estimate(r)
+        for pc in acc1:
             er, et, _ = errors(pc)
             out_r += int(er > pc.angle_3sigma_deg)
             out_p += int(et > pc.position_3sigma_mm)
@@ -103,7 +109,7 @@ def main(argv=None) -> int:
         # intra-class correlation of the holder-frame errors
         groups = []
         for h in by_h.values():
-            pcs = [view_estimate(h[v]) for v in sorted(h)]
+            pcs = [h[v][1] for v in sorted(h)]
             if len(pcs) == n_views and all(p is not None for p in pcs):
                 groups.append(np.stack([errors(p)[2] for p in pcs]))
         if len(groups) > 2:
@@ -116,13 +122,8 @@ def main(argv=None) -> int:
         # model E[z_i z_j^T] = rho I (i != j) and E[z_i z_i^T] = I
         zs = []
         for h in by_h.values():
-            z = []
-            for v in sorted(h):
-                pc = view_estimate(h[v])
-                if pc is not None and (h[v]["accepted"] or any(
-                        s in (h[v]["reason"] or "") for s in BUDGET_REASONS)):
-                    e = np.concatenate([pc.pose.t_mm, _log_R(pc.pose.R)])
-                    z.append(np.linalg.solve(sqrt_psd(pc.cov), e))
+            z = [np.linalg.solve(sqrt_psd(pc.cov), error6(pc)) for r, pc in h.values()
+                 if pc is not None and fusable(r)]
             if len(z) >= 2:
                 zs.append(np.stack(z))
         if zs:
@@ -143,15 +144,9 @@ def main(argv=None) -> int:
                 n_pose = n_acc = wrong = covered = 0
                 rots, trans, q_rot, q_pos = [], [], [], []
                 for h in by_h.values():
-                    pcs = []
-                    for v in sorted(h)[:k]:
-                        r = h[v]
-                        if not (r["accepted"] or any(s in (r["reason"] or "")
-                                                     for s in BUDGET_REASONS)):
-                            continue
-                        pc = view_estimate(r)
-                        if pc is not None:
-                            pcs.append(PoseCov(pc.pose, scale * pc.cov))
+                    pcs = [PoseCov(pc.pose, scale * pc.cov)
+                           for r, pc in (h[v] for v in sorted(h)[:k])
+                           if pc is not None and fusable(r)]
                     if not pcs:
                         continue
                     f = fuse_poses(pcs, rho=rho)

@@ -52,7 +52,7 @@ from scipy.stats import chi2 as chi2_dist
 
 from ..errors import InputError
 from ..geometry.pose import Pose
-from .frames import PoseCov, _check_cov
+from .frames import PoseCov
 
 __all__ = ["FusedPose", "fuse_poses", "joint_covariance", "sqrt_psd"]
 
@@ -139,20 +139,17 @@ class FusedPose:
 
     def to_dict(self) -> dict:
         return {"fused": self.fused.to_ros_dict(), "views": self.views, "chi2": self.chi2,
-                "dof": self.dof,
-                "p_value": self.p_value, "agree": self.agree,
+                "dof": self.dof, "p_value": self.p_value, "agree": self.agree,
                 "position_3sigma_mm": self.position_3sigma_mm,
                 "angle_3sigma_deg": self.angle_3sigma_deg,
                 "residuals_mm_deg": self.residuals.tolist()}
 
 
-def _perturbations(poses: list[Pose], mean: Pose) -> np.ndarray:
-    """(6n,) each pose's ``(dt, dphi)`` from ``mean`` (module Convention)."""
-    out = []
-    for p in poses:
-        dphi = Rotation.from_matrix(p.R @ mean.R.T).as_rotvec()
-        out.append(np.concatenate([p.t_mm - mean.t_mm, dphi]))
-    return np.concatenate(out)
+def _perturbations(R: np.ndarray, t: np.ndarray, mean: Pose) -> np.ndarray:
+    """(6n,) the ``(dt, dphi)`` of poses ``R`` (n, 3, 3), ``t`` (n, 3) from ``mean`` (module
+    Convention)."""
+    dphi = Rotation.from_matrix(R @ mean.R.T).as_rotvec()
+    return np.column_stack([t - mean.t_mm, dphi]).ravel()
 
 
 def fuse_poses(estimates: list[PoseCov], rho: float = 0.0, *,
@@ -179,7 +176,7 @@ def fuse_poses(estimates: list[PoseCov], rho: float = 0.0, *,
     if len(frames) != 1:
         raise InputError(f"the views estimate different transforms: {sorted(frames)}")
     n = len(estimates)
-    covs = [_check_cov(e.cov, f"covariance of view {i}") for i, e in enumerate(estimates)]
+    covs = [e.cov for e in estimates]   # PoseCov checked them (finite, symmetric, PSD)
     terms = joint_covariance(covs, rho, cov_ind, shared, split=True)
     Sig = sum(terms.values())
     try:
@@ -195,15 +192,16 @@ def fuse_poses(estimates: list[PoseCov], rho: float = 0.0, *,
     W = cov @ np.linalg.solve(L.T, LH).T
     best = int(np.argmin([np.trace(C) for C in covs]))
     mean = estimates[best].pose
-    poses = [e.pose for e in estimates]
+    Rs = np.stack([e.pose.R for e in estimates])
+    ts = np.stack([e.pose.t_mm for e in estimates])
     for _ in range(iterations):
-        xi = _perturbations(poses, mean)
+        xi = _perturbations(Rs, ts, mean)
         delta = W @ xi
         mean = Pose(Rotation.from_rotvec(delta[3:]).as_matrix() @ mean.R,
                     mean.t_mm + delta[:3], mean.to_frame, mean.from_frame)
         if np.linalg.norm(delta[:3]) < 1e-9 and np.linalg.norm(delta[3:]) < 1e-12:
             break
-    r = _perturbations(poses, mean)
+    r = _perturbations(Rs, ts, mean)
     z = np.linalg.solve(L, r)
     chi2 = float(z @ z)
     dof = 6 * (n - 1)
