@@ -397,17 +397,36 @@ def model_grid_px(bp: BandProfiles) -> tuple[float, float]:
 class _ModelBank:
     """The edge model at one pose for the band fit: each look's radius- and blur-free
     cross-section (:func:`~cutterpose.image.edge_model.cross_section`) is computed once and
-    shared by its scans, blurs and radii."""
+    shared by its scans, blurs and radii; the looks of one shape are computed together
+    (:func:`~cutterpose.image.edge_model.cross_sections`)."""
 
     def __init__(self, view: em.EdgeView, grid_px: tuple[float, float]):
         self.view = view
         self.grid_px = grid_px
         self._sections: dict = {}
 
+    @staticmethod
+    def _key(look: em.EdgeLook) -> em.EdgeLook:
+        return replace(look, blur_sigma_px=0.0, profile_sigma_px=0.0)
+
+    def sections(self, looks) -> em.CrossSection:
+        """The looks' cross-sections stacked (one shape), the missing ones computed at once."""
+        keys = [self._key(lk) for lk in looks]
+        missing = list(dict.fromkeys(k for k in keys if k not in self._sections))
+        if missing:
+            cs = em.cross_sections(self.view, missing)
+            for i, k in enumerate(missing):
+                self._sections[k] = em.CrossSection(cs.F[i], cs.w_end, cs.face[i],
+                                                    cs.beyond[i])
+        got = [self._sections[k] for k in keys]
+        return em.CrossSection(np.stack([c.F for c in got]), got[0].w_end,
+                               np.stack([c.face for c in got]),
+                               np.stack([c.beyond for c in got]))
+
     def section(self, look: em.EdgeLook) -> em.CrossSection:
-        key = replace(look, blur_sigma_px=0.0, profile_sigma_px=0.0)
+        key = self._key(look)
         if key not in self._sections:
-            self._sections[key] = em.cross_section(self.view, look)
+            self.sections([look])
         return self._sections[key]
 
     def profiles(self, radius_mm, looks, step_px: float):
@@ -416,13 +435,39 @@ class _ModelBank:
                                    [(lk.blur_sigma_px, lk.profile_sigma_px) for lk in looks],
                                    self.grid_px, step_px)
 
+    def profiles_looks(self, radius_mm, looks, step_px: float):
+        """(w0, (L, N, 2, M, G0)) for any looks; ``radius_mm`` (M,), (N, 2, M) or per look
+        (L, N, 2, M). Looks that differ only by their blur at shared radii share one raw
+        profile; the rest are computed a shape at a time."""
+        looks = list(looks)
+        r = np.asarray(radius_mm, float)
+        per_look = r.ndim == 4
+        if not per_look and len({self._key(lk) for lk in looks}) == 1:
+            w0, bls = self.profiles(r, looks, step_px)
+            return w0, np.stack(bls)
+        out = [None] * len(looks)
+        w0 = None
+        for shape in dict.fromkeys(lk.shape for lk in looks):
+            idx = [i for i, lk in enumerate(looks) if lk.shape == shape]
+            grp = [looks[i] for i in idx]
+            w0, bls = em.blurred_profiles(r[idx] if per_look else r, self.view,
+                                          self.sections(grp),
+                                          [(lk.blur_sigma_px, lk.profile_sigma_px)
+                                           for lk in grp], self.grid_px, step_px)
+            for i, b in zip(idx, bls):
+                out[i] = b
+        return w0, np.stack(out)
+
 
 def _along_segments(bl: np.ndarray, edge: np.ndarray, frac: np.ndarray) -> np.ndarray:
     """(S, M, G0) model profiles of segments from the edge ends' ``bl`` (N, 2, M, G0): linear
     between the edge's first end (corner ``k``, side 1) and its last (corner ``k + 1``,
-    side 0) at the segment's centre ``frac``."""
+    side 0) at the segment's centre ``frac``. With ``bl`` (L, N, 2, M, G0) of L looks:
+    (S, L, M, G0)."""
+    if bl.ndim == 5:
+        bl = np.moveaxis(bl, 0, 2)                                # (N, 2, L, M, G0)
     n = bl.shape[0]
-    f = frac[:, None, None].astype(np.float32)
+    f = frac.reshape((-1,) + (1,) * (bl.ndim - 2)).astype(np.float32)
     return (1 - f) * bl[edge, 1] + f * bl[(edge + 1) % n, 0]
 
 
@@ -442,16 +487,23 @@ def view_lean(view: em.EdgeView, edge: np.ndarray, frac: np.ndarray) -> np.ndarr
     return (1 - frac) * t[edge, 1] + frac * t[(edge + 1) % n, 0]
 
 
-def _scan(Y, models, m0, w_idx, shifts_idx):
+def _scan(Y, models, m0, w_idx, shifts_idx, dtype=np.float64):
     """Cost of ``Y ~ a + b model(w - shift)`` for every segment, radius and shift.
 
     Y : (S, G) measured; models : (S, M, G0); w_idx : (G,) consecutive sample offsets in model
     steps; shifts_idx : (S, H) or (H,) shifts in model steps. Returns cost, gain (S, M, H).
 
     With ``Yc = Y - mean(Y)`` and the model window ``m`` at a shift, the least-squares gain is
-    ``b = <m, Yc> / |m - mean(m)|^2`` and the cost ``|Yc|^2 - b <m, Yc>``. The windows are
-    gathered whole rows at a time from a sliding view (one copy of the (S, H, M, G) windows, no
-    per-sample index arrays), the window sums of ``m`` and ``m^2`` come from cumulative sums.
+    ``b = <m, Yc> / |m - mean(m)|^2`` and the cost ``|Yc|^2 - b <m, Yc>``. The three window
+    products (``<m, Yc>``, ``sum m``, ``sum m^2``) of every radius and shift are two matrix
+    products per segment: the model rows (only the columns some window covers) times a matrix
+    whose column ``h`` holds ``Yc``, or ones, at shift ``h``'s window (its (S, G0, 2 H) is
+    small; the windows themselves, (S, H, M, G), would be copied).
+
+    ``dtype``: of the products. The cost is a small difference of large sums (a good fit
+    leaves ~1e-3 of ``|Yc|^2``): float32 products leave it to ~1e-3 of itself, and so leave
+    radii and shifts whose costs are that close (as often on a clean edge) to the summation
+    order. float32 only for a scan whose minima :func:`_exact_minima` settles in float64.
     """
     S, G = Y.shape
     M, G0 = models.shape[1:]
@@ -464,88 +516,142 @@ def _scan(Y, models, m0, w_idx, shifts_idx):
     start = m0 + int(w_idx[0]) - sh                                         # (S, H)
     inside = (start >= 0) & (start <= G0 - G)
     start = np.clip(start, 0, G0 - G)
+    lo, hi = int(start.min()), int(start.max()) + G
     Yc = Y - Y.mean(axis=-1, keepdims=True)
     # a constant per model row changes neither the gain nor the cost: taking each row's mean
-    # out keeps the float32 window sums clear of cancellation
-    mf = np.asarray(models, dtype=np.float32)
-    mf = mf - mf.mean(axis=-1, keepdims=True)
-    win = sliding_window_view(mf, G, axis=-1)[np.arange(S)[:, None], :, start]  # (S, H, M, G)
-    win = win.reshape(S, H * M, G)
-    rhs = np.stack([Yc.astype(np.float32), np.ones((S, G), np.float32)], axis=-1)
-    prod = np.matmul(win, rhs)                                             # (S, H M, 2)
-    s2 = np.einsum("sng,sng->sn", win, win)
-    num, s1, s2 = (np.asarray(v, np.float64).reshape(S, H, M).transpose(0, 2, 1)
-                   for v in (prod[..., 0], prod[..., 1], s2))              # (S, M, H)
+    # (over the columns used) out keeps the window sums clear of cancellation
+    mf = np.asarray(models)[:, :, lo:hi].astype(dtype)
+    mf -= mf.mean(axis=-1, keepdims=True)
+    Gw = hi - lo
+    # row h of Bt: Yc (then ones) from column start - lo on, zeros elsewhere: windows of
+    # G zeros, Yc, Gw zeros (a view), each row one contiguous copy
+    k = G - (start - lo)                                                   # (S, H)
+    pad = np.zeros((S, 2 * G + Gw), dtype)
+    pad[:, G:2 * G] = Yc
+    ones = np.zeros(2 * G + Gw, dtype)
+    ones[G:2 * G] = 1.0
+    Bt = np.concatenate([sliding_window_view(pad, Gw, axis=-1)[np.arange(S)[:, None], k],
+                         sliding_window_view(ones, Gw)[k]], axis=1)         # (S, 2 H, Gw)
+    prod = np.matmul(mf, Bt.transpose(0, 2, 1))                            # (S, M, 2 H)
+    s2 = np.matmul(np.square(mf), Bt[:, H:].transpose(0, 2, 1))
+    num, s1 = prod[..., :H], prod[..., H:]
     den = s2 - s1 * s1 / G
     gain = num / np.maximum(den, 1e-12)
-    # a residual sum of squares; float32 window sums can leave a near-perfect fit a hair below 0
+    # a residual sum of squares; rounding can leave a perfect fit a hair below 0
     cost = np.maximum(np.sum(Yc * Yc, axis=-1)[:, None, None] - gain * num, 0.0)
     ok = (gain > 0) & inside[:, None, :]
     return np.where(ok, cost, np.inf), gain
 
 
-def _fit_looks(bp: BandProfiles, bank: _ModelBank, looks, coarse: LookFit | None = None,
+#: a float32 scan's cells within this fraction of ``|Yc|^2`` of a minimum are costed again in
+#: float64 (its error is ~1e-6 of ``|Yc|^2``: ten times that)
+EXACT_MARGIN = 1e-5
+
+
+def _exact_minima(Y, models, m0, w_idx, shifts_idx, cost, gain, groups: int):
+    """The minimum of each segment's scan in each of ``groups`` equal parts of its rows
+    (``cost``, ``gain`` (S, groups * M, H) from a float32 :func:`_scan`), the near-ties (within
+    :data:`EXACT_MARGIN` of ``|Yc|^2``) costed again in float64: the minimum's flat index over
+    (M, H), its cost and gain, (S, groups) each, as a float64 scan finds them (the first of
+    equal costs), at a float32 scan's price.
+    """
+    S, G = Y.shape
+    sh = np.asarray(shifts_idx)
+    sh = np.broadcast_to(sh, (S, sh.shape[-1])) if sh.ndim == 1 else sh
+    H = sh.shape[1]
+    flat = cost.reshape(S, groups, -1)                                      # (S, L, M H)
+    idx = np.argmin(flat, axis=2)
+    out_c = np.take_along_axis(flat, idx[..., None], 2)[..., 0].astype(np.float64)
+    out_g = np.take_along_axis(gain.reshape(S, groups, -1), idx[..., None], 2)[..., 0].astype(
+        np.float64)
+    Yc = Y - Y.mean(axis=-1, keepdims=True)
+    syy = np.sum(Yc * Yc, axis=-1)
+    near = np.isfinite(flat) & (flat <= out_c[..., None] + EXACT_MARGIN * syy[:, None, None])
+    s_i, l_i, c_i = np.nonzero(near)                  # C order: each (s, l) by flat index
+    m_i, h_i = np.divmod(c_i, H)
+    start = m0 + int(w_idx[0]) - sh[s_i, h_i]
+    rows = models[s_i, l_i * (models.shape[1] // groups) + m_i]             # (n, G0)
+    win = np.take_along_axis(rows, start[:, None] + np.arange(G), axis=1).astype(np.float64)
+    win -= win.mean(axis=1, keepdims=True)
+    num = np.einsum("ng,ng->n", win, Yc[s_i])
+    g = num / np.maximum(np.einsum("ng,ng->n", win, win), 1e-12)
+    c = np.where(g > 0, np.maximum(syy[s_i] - g * num, 0.0), np.inf)
+    key = s_i * groups + l_i
+    best = np.full(S * groups, np.inf)
+    np.minimum.at(best, key, c)
+    win_k = np.flatnonzero((c == best[key]) & np.isfinite(c))
+    keys, first = np.unique(key[win_k], return_index=True)
+    k = win_k[first]
+    idx.flat[keys], out_c.flat[keys], out_g.flat[keys] = c_i[k], c[k], g[k]
+    return idx, out_c, out_g
+
+
+def _fit_looks(bp: BandProfiles, bank: _ModelBank, looks, coarse=None,
                shift_range_px: float = COARSE_SHIFT_PX) -> list[LookFit]:
-    """Coarse scan (or, given ``coarse``, the fine scan round it) of looks that differ only by
-    their blur (one raw profile for all of them): one :class:`LookFit` per look."""
+    """Coarse scan of every look (or, given ``coarse``, the fine scan round it: one
+    :class:`LookFit` for all the looks, or one per look): one :class:`LookFit` per look.
+    All the looks are scanned together (their model profiles in one pass, one window scan)."""
+    looks = list(looks)
+    L = len(looks)
     h = STEP_PX
     S = len(bp.edge)
     Y = np.where(bp.valid[:, None], bp.values, 0.0)
     G = len(bp.w_px)
-    out = []
+    ar = np.arange(S)
     if coarse is None:
         # every second sample on a model grid of twice the step: the coarse scan needs no more
         hc = 2 * h
         radii = COARSE_RADII_MM
-        w0, bls = bank.profiles(radii, looks, hc)
+        w0, bl = bank.profiles_looks(radii, looks, hc)                     # (L, N, 2, M, G0)
+        M = len(radii)
         m0 = int(round(-w0[0] / hc))
         keep = slice(0, None, 2)
         w_idx = np.rint(bp.w_px[keep] / hc).astype(int)
         st = max(1, int(round(COARSE_SHIFT_STEP_PX / hc)))
         k = int(round(shift_range_px / COARSE_SHIFT_STEP_PX))
         shifts = st * np.arange(-k, k + 1)
-        for look, bl in zip(looks, bls):
-            cost, gain = _scan(Y[:, keep], _along_segments(bl, bp.edge, bp.frac), m0, w_idx,
-                               shifts)
-            flat = cost.reshape(S, -1)
-            jb = np.argmin(flat, axis=1)
-            mi, hi = np.unravel_index(jb, cost.shape[1:])
-            c = flat[np.arange(S), jb] * (G / len(w_idx))
-            g = gain.reshape(S, -1)[np.arange(S), jb]
-            out.append(_look_fit(bp, look, radii[mi], shifts[hi] * hc, c, g,
-                                 np.full(S, np.nan)))
-        return out
+        models = _along_segments(bl, bp.edge, bp.frac).reshape(S, L * M, -1)
+        # float32 products, the near-ties settled in float64: the coarse scan is the band
+        # fit's largest (S, L M, H), and only its minima are used
+        cost, gain = _scan(Y[:, keep], models, m0, w_idx, shifts, np.float32)
+        jb, c, g = _exact_minima(Y[:, keep], models, m0, w_idx, shifts, cost, gain, L)
+        mi, hi = np.unravel_index(jb, (M, len(shifts)))                    # (S, L) each
+        c = c * (G / len(w_idx))
+        return [_look_fit(bp, look, radii[mi[:, i]], shifts[hi[:, i]] * hc, c[:, i], g[:, i],
+                          np.full(S, np.nan)) for i, look in enumerate(looks)]
     # per-segment radius windows round the coarse radius; the n_seg segments of an edge share
-    # its two ends, so the edge model runs once per segment index
+    # its two ends, each end's model runs for every segment index's window at once
+    coarse = list(coarse) if isinstance(coarse, (list, tuple)) else [coarse] * L
+    shared = all(c is coarse[0] for c in coarse)
     nr = FINE_RADII
-    step = np.where(coarse.radius_mm < 2.0, FINE_STEP_MM, 2 * FINE_STEP_MM)[:, None]
-    base = np.clip(coarse.radius_mm[:, None] - step * (nr // 2), 0, None)
-    rad_seg = base + step * np.arange(nr)[None, :]                             # (S, nr)
     n = bank.view.a_s.shape[0]
-    per_end = np.zeros((n, 2, nr))
-    S_per_edge = S // n
+    n_seg = S // n
+    cr = np.stack([c.radius_mm for c in coarse])                              # (L, S)
+    step = np.where(cr < 2.0, FINE_STEP_MM, 2 * FINE_STEP_MM)[..., None]
+    rad_seg = np.clip(cr[..., None] - step * (nr // 2), 0, None) + step * np.arange(nr)
+    end1 = rad_seg.reshape(L, n, n_seg * nr)                                  # edge k's window
+    per_end = np.stack([np.roll(end1, 1, axis=1), end1], axis=2)              # (L, N, 2, .)
+    w0, bl = bank.profiles_looks(per_end[0] if shared else per_end, looks, h)
+    m0 = int(round(-w0[0] / h))
+    bl = bl.reshape(bl.shape[:3] + (n_seg, nr, -1))                         # (L, N, 2, j, r, G0)
+    jseg = ar % n_seg
+    f = bp.frac.astype(np.float32)[None, :, None, None]
+    models = ((1 - f) * bl[:, bp.edge, 1, jseg]
+              + f * bl[:, (bp.edge + 1) % n, 0, jseg])                      # (L, S, nr, G0)
     w_idx = np.rint(bp.w_px / h).astype(int)
-    centre = np.rint(coarse.shift_px / h).astype(int)
+    centre = np.rint(np.stack([c.shift_px for c in coarse]) / h).astype(int)  # (L, S)
     nh = 2 * FINE_SHIFT_STEPS + 1
-    cost_all = np.full((len(looks), S, nr, nh), np.inf)
-    gain_all = np.zeros_like(cost_all)
-    for jseg in range(S_per_edge):
-        sel = np.arange(jseg, S, S_per_edge)                                 # one per edge
-        per_end[:, 1] = rad_seg[sel]
-        per_end[:, 0] = np.roll(rad_seg[sel], 1, axis=0)                     # edge k-1's end
-        w0, bls = bank.profiles(per_end, looks, h)
-        m0 = int(round(-w0[0] / h))
-        shifts = centre[sel][:, None] + np.arange(-FINE_SHIFT_STEPS, FINE_SHIFT_STEPS + 1)
-        for i, bl in enumerate(bls):
-            cost, gain = _scan(Y[sel], _along_segments(bl, bp.edge[sel], bp.frac[sel]), m0,
-                               w_idx, shifts)
-            cost_all[i, sel], gain_all[i, sel] = cost, gain
-    ar = np.arange(S)
-    for look, cost_l, gain_l in zip(looks, cost_all, gain_all):
+    shifts = centre[..., None] + np.arange(-FINE_SHIFT_STEPS, FINE_SHIFT_STEPS + 1)
+    cost_all, gain_all = _scan(np.tile(Y, (L, 1)), models.reshape(L * S, nr, -1), m0, w_idx,
+                               shifts.reshape(L * S, nh))
+    cost_all = cost_all.reshape(L, S, nr, nh)
+    gain_all = gain_all.reshape(L, S, nr, nh)
+    out = []
+    for i, (look, cost_l, gain_l) in enumerate(zip(looks, cost_all, gain_all)):
         flat = cost_l.reshape(S, -1)
         jb = np.argmin(flat, axis=1)
         mi, hi = np.unravel_index(jb, cost_l.shape[1:])
-        s = (centre + hi - FINE_SHIFT_STEPS) * h
+        s = (centre[i] + hi - FINE_SHIFT_STEPS) * h
         # parabola through the shift neighbours at the best radius
         cm = cost_l[ar, mi]
         inner = (hi > 0) & (hi < nh - 1)
@@ -555,8 +661,8 @@ def _fit_looks(bp: BandProfiles, bank: _ModelBank, looks, coarse: LookFit | None
             den = c_l - 2 * c_0 + c_r
             dx = np.where(inner & np.isfinite(den) & (den > 0), 0.5 * (c_l - c_r) / den, 0.0)
         s = s + np.clip(dx, -0.5, 0.5) * h
-        var = _shift_variance(cost_l, mi, hi, step[:, 0], h, rad_seg[:, 0] == 0, G)
-        out.append(_look_fit(bp, look, rad_seg[ar, mi], s, flat[ar, jb],
+        var = _shift_variance(cost_l, mi, hi, step[i, :, 0], h, rad_seg[i, :, 0] == 0, G)
+        out.append(_look_fit(bp, look, rad_seg[i, ar, mi], s, flat[ar, jb],
                              gain_l.reshape(S, -1)[ar, jb], var))
     return out
 
@@ -636,15 +742,13 @@ def fit_band(bp: BandProfiles, camera: Camera, holder: Holder, R_cam_holder, t_c
     if previous is not None:
         # a second pass at a pose that moved little: the looks chosen before, scanned anew
         # (coarse, then fine) only for the chosen and the plausible ones
-        out = []
-        for lf in [previous.best] + previous.plausible:
-            c = _fit_looks(bp, bank, [lf.look], shift_range_px=2.0)[0]
-            out.append(_fit_looks(bp, bank, [lf.look], c)[0])
+        before = [lf.look for lf in [previous.best] + previous.plausible]
+        out = _fit_looks(bp, bank, before, _fit_looks(bp, bank, before, shift_range_px=2.0))
         return _offset(BandFit(out[0], out[1:], bp), looks, bank.view)
     # the look is chosen on all the pass's segments: a coarse scan's cost is the edge model's
     # profiles, one per edge end whatever the number of segments, so choosing it on every
     # other segment (as before) saved nothing and needed the chosen look scanned again
-    coarse = [_fit_looks(bp, bank, [lk])[0] for lk in candidates]
+    coarse = _fit_looks(bp, bank, candidates)
     totals = np.array([lf.total for lf in coarse])
     order = np.argsort(totals)
     best_i = int(order[0])
@@ -654,28 +758,30 @@ def fit_band(bp: BandProfiles, camera: Camera, holder: Holder, R_cam_holder, t_c
     fine = _fit_looks(bp, bank, [replace(candidates[best_i], blur_sigma_px=b) for b in blurs],
                       coarse[best_i])
     best = min(fine, key=lambda lf: lf.total)
-    plausible = []
+    chosen = []
     for i in order[1:]:
         ratio = totals[best_i] / totals[i] if np.isfinite(totals[i]) else 0.0
         # plausible: close in cost, and of a likelihood weight that matters in the budget
         if (ratio < PLAUSIBLE or ratio ** (0.5 * n_eff) < MIN_LOOK_WEIGHT
-                or len(plausible) == MAX_PLAUSIBLE):
+                or len(chosen) == MAX_PLAUSIBLE):
             continue
-        lk = replace(candidates[i], blur_sigma_px=best.look.blur_sigma_px)
-        if fine_plausible:
-            plausible.append(_fit_looks(bp, bank, [lk], coarse[i])[0])
-        else:
-            plausible.append(replace(coarse[i], look=lk))
-    if looks is not None:
+        chosen.append(int(i))
+    lks = [replace(candidates[i], blur_sigma_px=best.look.blur_sigma_px) for i in chosen]
+    if not lks:
+        plausible = []
+    elif fine_plausible:
+        plausible = _fit_looks(bp, bank, lks, [coarse[i] for i in chosen])
+    else:
+        plausible = [replace(coarse[i], look=lk) for i, lk in zip(chosen, lks)]
+    if looks is not None and looks.variants:
         # the calibration's variants at the chosen shape and blur: for the budget only (a first
         # pass only needs to name them; the last fits them)
-        for v in looks.variants:
-            lk = replace(v, shape=best.look.shape, blur_sigma_px=best.look.blur_sigma_px,
-                         profile_sigma_px=0.0)
-            if fine_plausible:
-                plausible.append(_fit_looks(bp, bank, [lk], _fit_looks(bp, bank, [lk])[0])[0])
-            else:
-                plausible.append(replace(best, look=lk))
+        vs = [replace(v, shape=best.look.shape, blur_sigma_px=best.look.blur_sigma_px,
+                      profile_sigma_px=0.0) for v in looks.variants]
+        if fine_plausible:
+            plausible += _fit_looks(bp, bank, vs, _fit_looks(bp, bank, vs))
+        else:
+            plausible += [replace(best, look=lk) for lk in vs]
     return _offset(BandFit(best, plausible, bp), looks, bank.view)
 
 

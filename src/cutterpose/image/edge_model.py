@@ -78,7 +78,8 @@ from .edges import _neighbours, _run_centroids
 __all__ = ["EdgeLook", "EdgeView", "LOOK_VARIANTS", "edge_views", "profiles", "gradient_edge_px",
            "edge_offsets_mm", "OffsetTable", "model_corners_mm", "corner_offset_jacobian",
            "build_offset_grid", "tabulated_w_px", "OFFSET_GRID_FILE", "look_offsets_mm",
-           "radius_offsets_mm", "CrossSection", "cross_section", "blurred_profiles"]
+           "radius_offsets_mm", "CrossSection", "cross_section", "cross_sections",
+           "blurred_profiles"]
 
 GRID_STEP_PX = 0.1
 _N_SHAPE = 257  # samples over the fillet or chamfer (normalised to r = 1)
@@ -298,10 +299,10 @@ def profiles(radius_mm, view: EdgeView, look: EdgeLook = EdgeLook(), half_width_
 class CrossSection:
     """The radius-free part of one look's profiles at one view (:func:`cross_section`)."""
 
-    F: np.ndarray          # (N, 2, K) shading over the broken edge's image, in units of r
+    F: np.ndarray          # ([L,] N, 2, K) shading over the broken edge's image, in units of r
     w_end: np.ndarray      # (N, 2, 1) where the broken edge's image ends (units of r)
-    face: np.ndarray       # (N, 2) grey of the face
-    beyond: np.ndarray     # (N, 2) grey past the silhouette (wall or pocket)
+    face: np.ndarray       # ([L,] N, 2) grey of the face
+    beyond: np.ndarray     # ([L,] N, 2) grey past the silhouette (wall or pocket)
 
 
 def cross_section(view: EdgeView, look: EdgeLook) -> CrossSection:
@@ -310,20 +311,31 @@ def cross_section(view: EdgeView, look: EdgeLook) -> CrossSection:
     return CrossSection(*_cross_section(view, look))
 
 
+def cross_sections(view: EdgeView, looks) -> CrossSection:
+    """:func:`cross_section` of several looks of one shape, lit alike (``view`` is theirs),
+    stacked on a leading look axis (``F`` (L, N, 2, K), ``face`` and ``beyond`` (L, N, 2)):
+    their common geometry and light computed once."""
+    return CrossSection(*_cross_sections(view, looks))
+
+
 def blurred_profiles(radius_mm, view: EdgeView, section: CrossSection, kernels_px,
                      grid_px: tuple[float, float], step_px: float):
     """:func:`profiles` of one look under several image chains at once: the raw profile from
-    ``section`` once, then one blur per kernel.
+    ``section`` once, then one blur per kernel; or of several looks of one shape at once
+    (``section`` from :func:`cross_sections`), one image chain per look.
 
-    The blur here is a direct separable filter (OpenCV) rather than :func:`profiles`' FFT: the
-    same convolution to float32 rounding (<= 1e-6 of the grey range), a few times cheaper on
-    the band fit's short grids.
+    The blur here is a direct filter along the rows (OpenCV) rather than :func:`profiles`' FFT:
+    the same convolution to float32 rounding (<= 1e-6 of the grey range), a few times cheaper
+    on the band fit's short grids.
 
     Parameters
     ----------
-    radius_mm : (M,) or (N, 2, M) radii as :func:`profiles`.
-    section : :func:`cross_section` of the look at ``view``.
-    kernels_px : sequence of (sigma_blur, sigma_profile) pairs (px), one per image chain.
+    radius_mm : (M,) or (N, 2, M) radii as :func:`profiles`; with several looks also
+        (L, N, 2, M), per look.
+    section : :func:`cross_section` of the look at ``view``, or :func:`cross_sections` of L
+        looks.
+    kernels_px : sequence of (sigma_blur, sigma_profile) pairs (px): one per image chain, or
+        with L looks one per look.
     grid_px : ``(lo, hi)`` the grid's extent (px, ``lo < 0 < hi``): ``step_px`` multiples
         from at or below ``lo`` to at or above ``hi``, 0 on a node.
 
@@ -331,20 +343,35 @@ def blurred_profiles(radius_mm, view: EdgeView, section: CrossSection, kernels_p
     -------
     w_px : (G,) float32 grid; blurred : list of (N, 2, M, G) float32 profiles, one per kernel.
     """
-    r = _radii(radius_mm, view)
     lo, hi = (int(np.ceil(abs(g) / step_px)) for g in grid_px)
     w = step_px * np.arange(-lo, hi + 1)
     sec = (section.F, section.w_end, section.face, section.beyond)
+    r = np.asarray(radius_mm, float)
+    r = _radii(r, view) if r.ndim < 4 else _radii(r.reshape((-1,) + r.shape[2:]), view
+                                                  ).reshape(r.shape)
     raw = _raw_lean(sec, view, r, w)
     w = w.astype(np.float32)
-    flat = np.ascontiguousarray(raw.reshape(-1, raw.shape[-1]), dtype=np.float32)
-    one = np.ones(1, np.float32)
-    out = []
-    for blur, prof in kernels_px:
-        k = _kernel_sigma(float(np.hypot(blur, prof)), w[1] - w[0])
-        b = cv2.sepFilter2D(flat, cv2.CV_32F, k.astype(np.float32), one,
-                            borderType=cv2.BORDER_REPLICATE)
-        out.append(b.reshape(raw.shape))
+    sig = [float(np.hypot(b, p)) for b, p in kernels_px]
+    if raw.ndim == 4:
+        raw = np.broadcast_to(raw, (len(sig),) + raw.shape)     # one raw profile, each blur
+        groups = [[i] for i in range(len(sig))]
+    else:
+        if len(sig) != raw.shape[0]:
+            raise ValueError("blurred_profiles: one kernel per look")
+        groups = {}
+        for i, s_ in enumerate(sig):
+            groups.setdefault(s_, []).append(i)
+        groups = list(groups.values())
+    out = [None] * len(sig)
+    for g in groups:
+        rows = raw[g[0]] if len(g) == 1 else raw[g]
+        flat = np.ascontiguousarray(rows.reshape(-1, raw.shape[-1]), dtype=np.float32)
+        k = _kernel_sigma(sig[g[0]], w[1] - w[0])
+        # a one-row kernel: filter2D (correlation; the kernel is symmetric) does no second pass
+        b = cv2.filter2D(flat, cv2.CV_32F, k.astype(np.float32)[None, :],
+                         borderType=cv2.BORDER_REPLICATE).reshape((len(g),) + raw.shape[1:])
+        for j, i in enumerate(g):
+            out[i] = b[j]
     return w, out
 
 
@@ -372,13 +399,16 @@ def _cross_section(view: EdgeView, look: EdgeLook):
     """The radius-free part of the profiles: ``F`` (N, 2, K) the shading over the broken
     edge's image in units of ``r``, ``w_end`` (N, 2, 1) where it ends, the face's and the
     beyond's greys (N, 2)."""
-    n = view.a_s.shape[0]
+    F, w_end, face, beyond = _cross_sections(view, [look])
+    return F[0], w_end, face[0], beyond[0]
+
+
+def _section_geometry(view: EdgeView, shape: str):
+    """Where the broken edge's image ends (``w_end``, (N, 2, 1), units of ``r``) and the
+    surface normals ``(n_o, n_z)`` (N, 2, K) seen over it on the uniform grid ``x = w / r``
+    from ``w_end`` to ``a_s``: all that the cross-section's shading needs of the view."""
     a_s, a_z = view.a_s[..., None], view.a_z[..., None]
-    face = _shade(np.zeros((n, 2)), -np.ones((n, 2)), look.face_albedo, 1.0, view, look)
-    wall = _shade(-np.ones((n, 2)), np.zeros((n, 2)), look.wall_albedo, 0.0, view, look)
-    # walls hidden (camera beyond the edge): the pocket's far side past the silhouette
-    beyond = np.where(view.v_o < 0, wall, look.pocket_level)
-    if look.shape == "round":
+    if shape == "round":
         A, psi = np.hypot(a_s, a_z), np.arctan2(a_z, a_s)
         # silhouette: n . v = 0, or the wall tangent phi = pi/2, whichever comes first
         phi_end = np.minimum(np.pi / 2, np.pi / 2 - psi)
@@ -391,14 +421,48 @@ def _cross_section(view: EdgeView, look: EdgeLook):
     # on a uniform grid over the broken edge's image [w_end, a_s] and look it up
     k = np.linspace(0.0, 1.0, _N_X)
     xs = w_end + (a_s - w_end) * k                            # (N, 2, K)
-    if look.shape == "round":
+    if shape == "round":
         with np.errstate(invalid="ignore"):
             phi = np.arcsin(np.clip((a_s + a_z - xs) / A, -1, 1)) - psi
         n_o, n_z = -np.sin(phi), -np.cos(phi)
     else:
         n_o = np.full(xs.shape, -np.sqrt(0.5))
         n_z = n_o
-    F = _shade(n_o, n_z, look.face_albedo, 1.0, view, look)   # (N, 2, K)
+    return w_end, n_o, n_z
+
+
+def _cross_sections(view: EdgeView, looks):
+    """:func:`_cross_section` of several looks of one shape and one light (``view`` is lit as
+    they are) at once, with a leading look axis on ``F`` (L, N, 2, K), ``face`` and
+    ``beyond`` (L, N, 2); ``w_end`` (N, 2, 1) is the shape's.
+
+    The geometry and the light's cosines are the looks' common part (:func:`_shade`'s terms
+    once, a power per distinct shininess): the band fit's look scan tries a dozen looks at
+    each pose."""
+    looks = list(looks)
+    shapes = {lk.shape for lk in looks}
+    if len(shapes) != 1:
+        raise ValueError("_cross_sections: the looks must share their shape")
+    n = view.a_s.shape[0]
+    w_end, n_o, n_z = _section_geometry(view, looks[0].shape)
+    nv = n_o * view.v_o[..., None] + n_z * view.v_z[..., None]
+    n_l = view.l_o.shape[-1]
+    diffuse, lobe = 0.0, {}
+    for j in range(n_l):
+        nl = n_o * view.l_o[..., j, None] + n_z * view.l_z[..., j, None]
+        nh = np.clip((nl + nv) / view.h_n[..., j, None], 0, None)
+        diffuse = diffuse + np.clip(nl, 0, None)
+        for m in {lk.shininess for lk in looks}:
+            lobe[m] = lobe.get(m, 0.0) + nh ** m
+    seen = nv > 0
+    F = np.stack([np.where(seen, (lk.face_albedo * diffuse + lk.specular * lobe[lk.shininess])
+                           / n_l, 0.0) for lk in looks])
+    face = np.stack([_shade(np.zeros((n, 2)), -np.ones((n, 2)), lk.face_albedo, 1.0, view, lk)
+                     for lk in looks])
+    # walls hidden (camera beyond the edge): the pocket's far side past the silhouette
+    beyond = np.stack([np.where(view.v_o < 0, _shade(-np.ones((n, 2)), np.zeros((n, 2)),
+                                                     lk.wall_albedo, 0.0, view, lk),
+                                lk.pocket_level) for lk in looks])
     return F, w_end, face, beyond
 
 
@@ -425,35 +489,56 @@ def _raw_from_section(section, view: EdgeView, r: np.ndarray, w: np.ndarray) -> 
 
 def _raw_lean(section, view: EdgeView, r: np.ndarray, w: np.ndarray) -> np.ndarray:
     """:func:`_raw_from_section` in float32 with fewer passes over the (N, 2, M, G) array (the
-    band fit evaluates it some 40 times per image): the table index ``q`` straight from ``w``
-    (one scale and offset per row), a table shifted by one sample for the upper neighbour, the
-    face and beyond written in place. Equal to :func:`_raw_from_section` to float32 rounding of
-    the index (~1e-4 of a table step)."""
+    band fit evaluates it for a dozen looks and some 40 radii per edge end at every pose).
+
+    The table is extended by a cell either side: the beyond's grey below ``w_end`` and the
+    face's at and above ``a_s``, both of slope 0, so that a sample is one index and one lerp
+    (``value + frac slope``) with no masks; the index ``q`` comes straight from ``w`` (one
+    scale and offset per row). Equal to :func:`_raw_from_section` to float32 rounding of the
+    index (~1e-4 of a table step).
+
+    ``section`` may carry a leading look axis (:func:`_cross_sections`: ``F`` (L, N, 2, K),
+    ``face`` and ``beyond`` (L, N, 2)) and ``r`` then be (N, 2, M), shared, or (L, N, 2, M);
+    the result is (L, N, 2, M, G): looks of one shape at shared radii share the index."""
     F, w_end, face, beyond = section
-    n, _, K = F.shape
+    n, _, K = F.shape[-3:]
     a_s = view.a_s[..., None]                                     # (N, 2, 1)
     span = a_s - w_end
-    scale = ((K - 1) / span) / np.maximum(r, 1e-9)                # (N, 2, M)
-    off = np.broadcast_to(-w_end * (K - 1) / span, scale.shape)
-    q = (np.asarray(w, np.float32) * scale[..., None].astype(np.float32)
-         + off[..., None].astype(np.float32))                     # (N, 2, M, G)
-    below = q < 0                                                 # x < w_end
-    above = q >= K - 1                                            # x >= a_s
-    np.clip(q, 0, K - 1.001, out=q)
+    scale = (((K - 1) / span) / np.maximum(r, 1e-9)).astype(np.float32)      # ([L,] N, 2, M)
+    off = np.broadcast_to(-w_end * (K - 1) / span, scale.shape).astype(np.float32)
+    q = np.asarray(w, np.float32) * scale[..., None]
+    q += off[..., None]                                           # ([L,] N, 2, M, G)
+    # cell of each sample in the extended table: 0 beyond (q < 0), 1 + floor(q) on the
+    # band, K + 1 the face (q >= K - 1); a radius of 0 puts every q far out, finite
+    np.clip(q, -1.0, K, out=q)
     fl = np.floor(q)
     q -= fl                                                       # the lerp weight
-    idx = fl.astype(np.int32)
-    idx += (np.arange(n * 2, dtype=np.int32) * K).reshape(n, 2, 1, 1)
-    flat = F.astype(np.float32).ravel()
-    v0 = flat[idx]
-    v1 = np.append(flat[1:], flat[-1])[idx]
-    v1 -= v0
-    v1 *= q
-    v0 += v1
-    np.copyto(v0, np.broadcast_to(face.astype(np.float32)[..., None, None], v0.shape), where=above)
-    np.copyto(v0, np.broadcast_to(beyond.astype(np.float32)[..., None, None], v0.shape),
-              where=below)
-    return v0
+    cell = fl.astype(np.int32)
+    cell += 1
+    cell[cell == K] = K + 1                                       # at a_s the face begins
+    F32 = np.asarray(F, np.float32)
+    lead = F32.shape[:-3]
+    ext = np.empty(lead + (n, 2, K + 2), np.float32)
+    slope = np.zeros_like(ext)
+    ext[..., 0] = beyond
+    ext[..., 1:K + 1] = F32
+    ext[..., K + 1] = face
+    slope[..., 1:K] = np.diff(F32, axis=-1)
+    rows = np.arange(n * 2, dtype=np.int32).reshape(n, 2, 1, 1) * (K + 2)
+    if lead and cell.ndim == 4:
+        # looks sharing the radii: one index, a gather per look
+        cell += rows
+        out = np.empty(lead + cell.shape, np.float32)
+        for i in range(lead[0]):
+            np.take(ext[i].ravel(), cell, out=out[i])
+            out[i] += q * np.take(slope[i].ravel(), cell)
+        return out
+    rows = np.arange(int(np.prod(ext.shape[:-1])), dtype=np.int32).reshape(
+        ext.shape[:-1] + (1, 1)) * (K + 2)
+    cell += rows
+    out = np.take(ext.ravel(), cell)
+    out += q * np.take(slope.ravel(), cell)
+    return out
 
 
 def gradient_edge_px(w_px: np.ndarray, blurred: np.ndarray, with_rival: bool = False,
