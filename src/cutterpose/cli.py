@@ -603,7 +603,7 @@ def track_cmd(
     edge_break_mm: float = _edge_break_option(),
     edge_look: str = _edge_look_option(),
     anchor_lag: int = typer.Option(None, min=0, help="dm+b: run the re-anchors' band fits "
-                                   "(~200 ms) beside the tracking and apply them this many "
+                                   "(~120 ms) beside the tracking and apply them this many "
                                    "frames later (0: on their frame, which waits; default: "
                                    "the tracker's); > 0 also measures a frame tracking "
                                    "cannot follow beside it (that frame has no pose and says "

@@ -197,7 +197,7 @@ class AnchorProcess:
     (one pending job at a time, so one block, which the job copies its frame out of; a job
     dropped by a fall-back and still queued may read the next job's frame: its result is
     never read), the rest of the arguments by pickle. A process, not a thread: the band fit is
-    ~200 ms of mostly small NumPy calls that hold the interpreter lock, which a thread would
+    ~120 ms of mostly small NumPy calls that hold the interpreter lock, which a thread would
     take from the tracking (spawned, not forked: the caller may have threads of its own; as
     for any spawned process, a script's main module must be importable, i.e. not read from
     standard input: else the worker fails, and each re-anchor falls back to a full
@@ -399,7 +399,7 @@ class TrackParams:
     #: the band's pose and the tracked pose may differ per DOF by this many combined std;
     #: beyond, one of them is wrong and the frame is measured in full
     anchor_gate_sigma: float = 5.0
-    #: a re-anchor's band fit (~200 ms) runs beside the tracking and its offsets are applied
+    #: a re-anchor's band fit (~120 ms) runs beside the tracking and its offsets are applied
     #: this many frames after the frame it was measured on (docs/tracking.md, "Jobs beside
     #: the tracking"); 0: on that frame itself, which then waits for the fit
     anchor_lag: int = 0

@@ -252,7 +252,7 @@ class TrackCreate(_Model):
     filter: bool = Field(True, description="Also report the temporal filter's pose "
                          "(constant velocity on SE(3)) beside the raw per-frame pose.")
     anchor_lag: int | None = Field(None, ge=0, le=30, description="dm+b: re-anchors (the band "
-                                   "fit, ~200 ms) run beside the tracking and are applied this "
+                                   "fit, ~120 ms) run beside the tracking and are applied this "
                                    "many frames later (0: on their frame, which then waits; "
                                    "default: the tracker's); > 0 also measures a frame the "
                                    "tracker cannot follow beside it: that frame answers at "
