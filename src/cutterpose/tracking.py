@@ -19,11 +19,11 @@ contour lies, and the region search, threshold and contour segmentation are skip
    line (ideal px), started at ``T_pred`` (Drummond & Cipolla 2002), no coarse search: a corner
    whose other edge is hidden still counts through its seen one. A seen edge far off the
    fitted model while the others fit (``line_outlier_*``) is left out and the pose fitted
-   again. The bands are re-centred on the fitted pose and the edges found again while they lay
-   off-centre (``centred_fraction``, up to ``max_passes``). The std per DOF is the
-   Gauss-Newton covariance ``s^2 (J^T J)^-1`` as in :mod:`cutterpose.pipeline`;
+   again. The bands are re-centred on the fitted pose and the edges found again while the fit
+   moved them (by more than ``centred_fraction`` of the band, up to ``max_passes``). The std
+   per DOF is the Gauss-Newton covariance ``s^2 (J^T J)^-1`` as in :mod:`cutterpose.pipeline`;
 4. **checks** (every tracked frame): at least ``min_lines`` edges seen (two per direction),
-   the edges centred in their bands on the last pass, the RMS and largest model-to-edge
+   the bands settled (the last pass's fit moved them little), the RMS and largest model-to-edge
    distance below ``max_rms_px`` / ``max_corner_residual_px``, and the seen edges fixing
    every DOF within ``max_std_ratio`` of the std all 20 would give (a family of short edges
    lost far away leaves X or Z loose: that is not the full measurement's accuracy). A frame
@@ -337,6 +337,16 @@ def line_offsets_mm(pose: Pose, lines: np.ndarray, seen: np.ndarray, holder: Hol
     return out
 
 
+def _bands_moved_px(r_start: np.ndarray, r: np.ndarray) -> float:
+    """How far a pass's pose fit moved the bands' centres (px): the largest change of a seen
+    edge end's distance to its line (``r_start`` at the pass's start pose, ``r`` at its
+    fitted pose). The next pass centres its bands on the fitted pose, so this is how far they
+    move; how far the edges lie from the model (``r`` itself) is the residual checks' to
+    judge (a worn edge's break varies along it and leaves a px or two however the bands are
+    centred)."""
+    return float(np.max(np.abs(np.asarray(r_start) - np.asarray(r))))
+
+
 # ------------------------------------------------------------------------------------------
 @dataclass(frozen=True)
 class TrackParams:
@@ -360,7 +370,9 @@ class TrackParams:
     rms_ref_factor: float = 1.0
     min_lines: int = 10               #: edges seen (of 20; >= 2 per direction) for a pose
     shift_fraction: float = 0.75      #: a seen edge lies within this share of the band
-    centred_fraction: float = 0.35    #: ... and, on the last pass, within this share
+    #: the last pass's pose fit moved the bands by at most this share of them (the edges may
+    #: lie farther from the model: the residual limits judge that)
+    centred_fraction: float = 0.35
     max_passes: int = 3               #: band passes, each centred on the previous pose
     #: a seen edge whose ends lie farther than max(line_outlier_px, line_outlier_factor x the
     #: median) from their line after the pose fit is left out (at most max_dropped_lines)
@@ -478,7 +490,7 @@ class TrackResult:
     corners_px: np.ndarray | None = None
     measurement: Measurement | None = None
     timings_ms: dict = field(default_factory=dict)
-    passes: int = 0   #: edge passes (tracking: 2 when the first found the edges off-centre)
+    passes: int = 0   #: edge passes (tracking: 2 when the first pass's fit moved the bands)
     lines_seen: int = 0    #: tracking: edges with enough inlier support (of 20)
     corners_used: int = 0  #: tracking: corners whose two lines were seen
     lines_dropped: int = 0  #: tracking: seen edges left out as off the fitted model
@@ -1373,15 +1385,18 @@ class Tracker:
                 lines[ks[worst]] = np.nan
                 dropped += 1
             lap("solve")
-            # how far the seen edges lay from the bands' centres: profiles sampled off-centre
-            # cut a rise at the band's end (a biased edge), so once more, centred on the pose
-            moved = float(np.abs(r_start).max())
+            # how far the fit moved the bands' centres (the model's edges, along their
+            # normals): profiles sampled off-centre cut a rise at the band's end (a biased
+            # edge), so once more, centred on the fitted pose. Not how far the edges lie from
+            # the model: a worn edge whose break varies along it lies a few px off the rigid
+            # model however the bands are centred (the residual checks judge that)
+            moved = _bands_moved_px(r_start, r)
             if moved <= tp.centred_fraction * hw:
                 break
         else:
-            return (f"the edges lie {moved:.1f} px from the bands' centres after "
-                    f"{tp.max_passes} passes (> {tp.centred_fraction * hw:.1f} px): the "
-                    "prediction is too far off")
+            return (f"the bands did not settle: the pose fit moved the edges by {moved:.1f} px "
+                    f"on the last of {tp.max_passes} passes (> "
+                    f"{tp.centred_fraction * hw:.1f} px): the prediction is too far off")
         why = self._check(pose, r, J, J2, seen, new)
         if isinstance(why, str):
             return why
