@@ -110,6 +110,7 @@ def test_bad_frames_and_requests_are_typed_4xx(service):
             "flange pose": _frame(client, tid, _png(img), params={"flange_pose": "1,2,3"}),
             "empty": _frame(client, tid, b""),
             "frame time": _frame(client, tid, _png(img), params={"t_s": "soon"}),
+            "frame id": _frame(client, tid, _png(img), params={"frame_id": -3}),
         }
         codes = {k: (r.status_code, r.json()["error"]) for k, r in bad.items()}
         assert codes == {"json body": (415, "unsupported_media_type"),
@@ -119,7 +120,8 @@ def test_bad_frames_and_requests_are_typed_4xx(service):
                          "small png": (422, "image_unusable"),
                          "flange pose": (422, "bad_flange_pose"),
                          "empty": (400, "empty_body"),
-                         "frame time": (422, "validation_error")}, codes
+                         "frame time": (422, "validation_error"),
+                         "frame id": (422, "validation_error")}, codes
         # none of them reached the tracker
         assert client.get(f"/v1/tracks/{tid}", headers=AUTH).json()["frames"] == 0
         assert _open(client, holder="nope").status_code == 422
@@ -134,12 +136,14 @@ def test_bad_frames_and_requests_are_typed_4xx(service):
         assert "t_s" in r.json()["message"], r.text
     finally:
         client.delete(f"/v1/tracks/{tid}", headers=AUTH)
-    # a session whose frames all carry their times (a client sending the newest frame)
+    # a session whose frames all carry their times and numbers (a client sending the newest
+    # frame): the answers carry the camera's numbers
     tid = _open(client).json()["id"]
     try:
-        modes = [_frame(client, tid, _png(f), params={"t_s": 0.1 * k}).json()["mode"]
-                 for k, f in zip((0, 1, 3), (frames[0], frames[1], frames[3]))]
-        assert modes == ["full", "track", "track"], modes
+        outs = [_frame(client, tid, _png(f), params={"t_s": 0.1 * k, "frame_id": 100 + k}).json()
+                for k, f in zip((0, 1, 3), (frames[0], frames[1], frames[3]))]
+        assert [o["mode"] for o in outs] == ["full", "track", "track"], outs
+        assert [(o["frame"], o["frame_id"]) for o in outs] == [(0, 100), (1, 101), (2, 103)]
     finally:
         client.delete(f"/v1/tracks/{tid}", headers=AUTH)
 

@@ -88,6 +88,12 @@ def test_deadline_kills_the_stuck_worker_only(pool):
 
 def test_queue_full_refuses_at_once_with_a_retry_time(pool):
     assert pool.wait_ready(30)
+    # an earlier test's job may still count as pending (a deadline's kill is settled by the
+    # pool's own thread, later under load): the "2 run, 1 waits" below needs an empty pool
+    end = time.monotonic() + 30
+    while pool.pending and time.monotonic() < end:
+        time.sleep(0.01)
+    assert pool.pending == 0
     running = [pool.submit(_sleep, 1.0, deadline_s=30) for _ in range(3)]  # 2 run, 1 waits
     t0 = time.monotonic()
     with pytest.raises(QueueFullError) as e:

@@ -23,6 +23,7 @@ from cutterpose.render.sequence import approach_poses, render_sequence
 from cutterpose.tracking import (
     PoseFilter,
     Tracker,
+    TrackParams,
     approach_limits,
     approach_params,
     se3_exp,
@@ -792,3 +793,41 @@ def test_passes_stop_when_the_fit_no_longer_moves_the_bands():
     assert _bands_moved_px(moved, off) == pytest.approx(3.0)
     # the same with the misfit edge: what counts is the change
     assert _bands_moved_px(off + 0.5, off) == pytest.approx(0.5)
+
+
+
+def test_frames_named_by_the_cameras_numbers(sequence):
+    """``update(..., frame_id=)``: the results carry the camera's numbers (a dropped frame
+    leaves a gap) and the deferred fall-back's messages name its frame by them; without them
+    the update count, as before. Ids must be given for all frames or none, and increase."""
+    d, truth = sequence
+    files = [d / e["file"] for e in truth["images"]]
+    ids = [1000 + e["frame"] for e in truth["images"]]           # the drop leaves a gap
+    j = [e["frame"] for e in truth["images"]].index(JUMP)
+    tp = TrackParams(anchor_lag=2)
+    tracker = Tracker(CAM, default_holder(), "dm+", limits=SHARP, track=tp,
+                      anchor_worker="inline")
+    res = [tracker.update(f, frame_id=i) for f, i in zip(files, ids)]
+    assert [r.frame_id for r in res] == ids
+    assert [r.frame for r in res] == list(range(len(files)))
+    assert res[j].mode == "lost"
+    assert res[j].fallback_reason.endswith("full measurement started (applied 2 frames later)")
+    assert res[j + 1].fallback_reason.endswith(
+        f"(full measurement of frame {ids[j]} pending (applied 1 frames later))"
+    ) or res[j + 1].anchor == f"full measurement of frame {ids[j]} pending (applied 1 frames later)"
+    assert res[j + 2].anchor == f"full measurement of frame {ids[j]} applied"
+    assert res[j + 2].to_dict()["frame_id"] == ids[j + 2]
+    # all or none, increasing
+    t2 = Tracker(CAM, default_holder(), "dm+", limits=SHARP, anchor_worker="inline")
+    t2.update(files[0], frame_id=5)
+    with pytest.raises(InputError, match="frame_id"):
+        t2.update(files[1])
+    with pytest.raises(InputError, match="increase"):
+        t2.update(files[1], frame_id=5)
+    with pytest.raises(InputError, match="integer"):
+        t2.update(files[1], frame_id=6.5)
+    assert t2.update(files[1], frame_id=7).frame_id == 7
+    t3 = Tracker(CAM, default_holder(), "dm+", limits=SHARP, anchor_worker="inline")
+    assert t3.update(files[0]).frame_id == 0
+    with pytest.raises(InputError, match="frame_id"):
+        t3.update(files[1], frame_id=1)

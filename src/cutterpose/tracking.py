@@ -67,6 +67,7 @@ References:
 from __future__ import annotations
 
 import math
+import operator
 import time
 import weakref
 from concurrent.futures import Future, ProcessPoolExecutor, ThreadPoolExecutor
@@ -459,7 +460,8 @@ class TrackResult:
 
     Attributes
     ----------
-    frame : the frame's index (0-based, in the order given to the tracker).
+    frame : the frame's index (0-based, in the order given to the tracker); ``frame_id``
+        the camera's frame number given with it (:meth:`Tracker.update`), else ``frame``.
     mode : ``"track"`` (predicted edges), ``"full"`` (the full measurement: first frame or a
         fall-back) or ``"lost"`` (no pose; also a deferred fall-back's frame, docs/tracking.md).
     pose : the raw per-frame pose (None when lost); ``std_dof`` its std per DOF (tracking
@@ -509,13 +511,15 @@ class TrackResult:
     #: anchor has measured yet
     lines_found: np.ndarray | None = field(default=None, repr=False)
     edges_found: np.ndarray | None = field(default=None, repr=False)
+    frame_id: int = -1
 
     def to_dict(self) -> dict:
         """One JSON object of ``cutterpose track --json-lines``."""
         def f(x):
             return None if x is None or not math.isfinite(float(x)) else float(x)
 
-        return {"frame": self.frame, "mode": self.mode, "ok": self.ok,
+        return {"frame": self.frame, "frame_id": self.frame_id, "mode": self.mode,
+                "ok": self.ok,
                 "fallback_reason": self.fallback_reason,
                 "pose": None if self.pose is None else self.pose.to_dict(),
                 "std": {k: f(v) for k, v in zip(DOF_NAMES, self.std_dof)},
@@ -705,6 +709,10 @@ class Tracker:
         #: frame times (``update(..., t_s=)``); without them a frame's time is its index
         self._frame_t: dict[int, float] = {}
         self._timed = False
+        #: the camera's frame numbers (``update(..., frame_id=)``): messages name frames by
+        #: them; without them by the update count
+        self._frame_ids: dict[int, int] = {}
+        self._named = False
         self._filter_k: int | None = None   # the frame the filter last took
         self._rms_ref = 0.0   # corner RMS of the last accepted full measurement (px)
         self._n = 0
@@ -742,16 +750,26 @@ class Tracker:
         self.close()
 
     # -- one frame ---------------------------------------------------------------------
-    def update(self, image, t_s: float | None = None) -> TrackResult:
+    def update(self, image, t_s: float | None = None,
+               frame_id: int | None = None) -> TrackResult:
         """Pose in the next frame (array, raw buffer of the camera's size, or a file).
 
         ``t_s``: the frame's time (s, the camera's timestamp), for a driver that hands over
         the newest frame and skips those that came while the tracker was busy: the motion is
-        then predicted per second, not per frame. Give it for every frame or for none."""
+        then predicted per second, not per frame. ``frame_id``: the camera's frame number
+        (increasing; frames skipped by such a driver leave gaps): the result carries it
+        (``TrackResult.frame_id``) and the messages name frames by it (a job's take-up, due
+        a number of updates on, by that number). Give each for every frame or for none."""
+        k = self._n
+        res = self._update(image, t_s, frame_id)
+        res.frame_id = self._frame_ids.get(k, k)
+        return res
+
+    def _update(self, image, t_s, frame_id) -> TrackResult:
         t0 = time.perf_counter()
         img = as_grey_u8(load_frame(image, self.camera))
         k = self._n
-        self._stamp(k, t_s)
+        self._stamp(k, t_s, frame_id)
         self._n += 1
         timings: dict[str, float] = {}
         reason = "first frame" if k == 0 else "no previous pose"
@@ -761,16 +779,16 @@ class Tracker:
             j = self._pending_full.frame
             why, full = self._take_full(k, timings)
             if not why:
-                note_full, fresh = f"full measurement of frame {j} applied", True
+                note_full, fresh = f"full measurement of {self._name(j)} applied", True
             elif self._last is not None and self._last_k > j:
                 # tracked since frame j: the tracking goes on with the offsets it has
-                note_full = f"full measurement of frame {j} not applied ({why})"
+                note_full = f"full measurement of {self._name(j)} not applied ({why})"
             else:
                 self._last, reason = None, why
         pending = self._pending_full
         if pending is not None:
-            note_full = (f"full measurement of frame {pending.frame} pending (applied at "
-                         f"frame {pending.at})")
+            note_full = (f"full measurement of {self._name(pending.frame)} pending "
+                         f"(applied {self._due(pending.at, k)})")
         # a deferred re-anchor due on this frame is taken up before the frame is tracked
         why, note = self._take_anchor(k, timings) if self._last is not None else ("", "")
         if why:
@@ -833,21 +851,33 @@ class Tracker:
         res.timings_ms = timings | {"total": (time.perf_counter() - t0) * 1e3}
         return res
 
-    def _stamp(self, k: int, t_s: float | None) -> None:
-        """Keep frame ``k``'s time (its index without timestamps)."""
-        timed = t_s is not None
-        if k > 0 and timed != self._timed:
-            raise InputError("give t_s for every frame of a track or for none (frame "
-                             f"{k}: {'given' if timed else 'missing'})")
-        self._timed = timed
-        if timed:
-            t = float(t_s)
-            prev = self._frame_t.get(k - 1)
-            if not math.isfinite(t) or (prev is not None and not t > prev):
-                raise InputError(f"frame times must be finite and increase: frame {k} at "
-                                 f"{t_s} s after {prev} s")
-            self._frame_t[k] = t
-            self._prune_times(k)
+    def _stamp(self, k: int, t_s: float | None, frame_id: int | None = None) -> None:
+        """Keep frame ``k``'s time (its index without timestamps) and camera frame number,
+        both checked before either is kept: given for every frame or none, increasing."""
+        if frame_id is not None:
+            try:
+                frame_id = operator.index(frame_id)
+            except TypeError:
+                raise InputError(f"frame_id must be an integer, got {frame_id!r}") from None
+        t = None if t_s is None else float(t_s)
+        checks = (("frame_id", frame_id, "_named", self._frame_ids, 0),
+                  ("t_s", t, "_timed", self._frame_t, -math.inf))
+        for name, value, flag, store, low in checks:
+            given = value is not None
+            if k > 0 and given != getattr(self, flag):
+                raise InputError(f"give {name} for every frame of a track or for none (frame "
+                                 f"{k}: {'given' if given else 'missing'})")
+            prev = store.get(k - 1)
+            if given and not (math.isfinite(value) and value >= low
+                              and (prev is None or value > prev)):
+                floor = f", >= {low}" if low > -math.inf else ""
+                raise InputError(f"{name} must be finite{floor} and increase: frame {k} has "
+                                 f"{value} after {prev}")
+        for _, value, flag, store, _ in checks:
+            setattr(self, flag, value is not None)
+            if value is not None:
+                store[k] = value
+        self._prune_times(k)
 
     def _prune_times(self, k: int) -> None:
         """Keep the times of the frames something refers to (this and the previous frame,
@@ -861,6 +891,19 @@ class Tracker:
         keep.discard(None)
         if len(self._frame_t) > len(keep):
             self._frame_t = {x: t for x, t in self._frame_t.items() if x in keep}
+        if len(self._frame_ids) > len(keep):
+            self._frame_ids = {x: i for x, i in self._frame_ids.items() if x in keep}
+
+    def _name(self, j: int) -> str:
+        """Frame ``j`` (update count) as the messages name it: by the camera's number when
+        the frames have them."""
+        return f"frame {self._frame_ids.get(j, j)}" if self._named else f"frame {j}"
+
+    def _due(self, at: int, k: int) -> str:
+        """When a job due on update ``at`` is taken up, seen from update ``k``: the frame
+        (update count), or with camera numbers, whose future ones are not known, how many
+        frames on."""
+        return f"{at - k} frames later" if self._named else f"at frame {at}"
 
     def _time(self, k: int) -> float:
         """Frame ``k``'s time: its timestamp (s) or, without timestamps, its index."""
@@ -932,8 +975,8 @@ class Tracker:
         keep = np.array(img, copy=True) if self._refines else None
         self._pending_full = _DeferredFull(at, k, fut, keep, self._last, self._last_k,
                                            self._vel)
-        return self._no_pose(k, f"{reason}; full measurement started (applied at frame "
-                                f"{at})", None, timings, t0, forget=False)
+        return self._no_pose(k, f"{reason}; full measurement started (applied "
+                                f"{self._due(at, k)})", None, timings, t0, forget=False)
 
     def _take_full(self, k: int, timings: dict) -> tuple[str, Measurement | None]:
         """Take up the deferred full measurement due on frame ``k`` (waiting for it):
@@ -947,15 +990,16 @@ class Tracker:
         try:
             m = fut.result()
         except CutterposeError as e:
-            return f"full measurement (frame {j}): {type(e).__name__}: {e}", None
+            return f"full measurement ({self._name(j)}): {type(e).__name__}: {e}", None
         except BrokenProcessPool as e:
             self.close()
-            return f"full measurement (frame {j}): the worker process failed ({e})", None
+            return (f"full measurement ({self._name(j)}): the worker process failed ({e})",
+                    None)
         finally:
             timings["full_wait"] = (time.perf_counter() - t) * 1e3
         timings["full"] = float(m.timings_ms.get("total", math.nan))
         if not m.ok:
-            return f"full measurement (frame {j}): {m.quality.reason}", m
+            return f"full measurement ({self._name(j)}): {m.quality.reason}", m
         # the poses tracked since frame j rest on the offsets before it: their motion per
         # frame carries the measured pose (a pose of theirs with the new offsets would be
         # off by the offsets' change: 2-3 px on worn holders)
@@ -1197,7 +1241,8 @@ class Tracker:
         self._pending = _DeferredAnchor(at, fut, res.frame, res.pose, res.std_dof.copy(),
                                         lines, used)
         res.anchor = "; ".join(filter(None, [res.anchor,
-                                             f"re-anchor started (applied at frame {at})"]))
+                                             "re-anchor started (applied "
+                                             f"{self._due(at, res.frame)})"]))
 
     def _submit(self, fn, img: np.ndarray, *args) -> Future:
         """``fn(img, *args)`` (:func:`band_fit` or :func:`full_measurement`) on the
@@ -1232,18 +1277,20 @@ class Tracker:
         try:
             est, q, fit_ms = fut.result()
         except CutterposeError as e:
-            return f"re-anchor (frame {j}): {type(e).__name__}: {e}", ""
+            return f"re-anchor ({self._name(j)}): {type(e).__name__}: {e}", ""
         except BrokenProcessPool as e:   # the worker died: a new one at the next re-anchor
             self.close()
-            return f"re-anchor (frame {j}): the band fit's worker process failed ({e})", ""
+            return (f"re-anchor ({self._name(j)}): the band fit's worker process failed "
+                    f"({e})", "")
         finally:
             timings["anchor_wait"] = (time.perf_counter() - t) * 1e3
         timings["anchor_fit"] = fit_ms
         why, note = self._apply_band(est, q, j, pose, std, lines, used)
+        name = self._name(j)
         if why:
-            return why.replace("re-anchor:", f"re-anchor (frame {j}):", 1), ""
-        return "", note.replace("re-anchor", f"re-anchor (frame {j})", 1) \
-            if note != "re-anchored" else f"re-anchored (frame {j})"
+            return why.replace("re-anchor:", f"re-anchor ({name}):", 1), ""
+        return "", note.replace("re-anchor", f"re-anchor ({name})", 1) \
+            if note != "re-anchored" else f"re-anchored ({name})"
 
     def _filter(self, res: TrackResult, force: str) -> None:
         if self.filter is not None and res.pose is not None:

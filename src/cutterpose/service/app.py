@@ -584,7 +584,8 @@ def create_app(cell: Cell, pool: WorkerPool | None = None) -> FastAPI:
                 raise ApiError(404, "not_found", f"tracking session {track_id} was closed")
             t3 = time.perf_counter()
             try:
-                out = await asyncio.to_thread(track_frame, s, cell, img, row, q.t_s)
+                out = await asyncio.to_thread(track_frame, s, cell, img, row, q.t_s,
+                                              q.frame_id)
             except CutterposeError as e:
                 raise ApiError(422, "bad_input", f"{type(e).__name__}: {e}") from None
             finally:

@@ -109,6 +109,10 @@ class TrackFrameQuery(ImageQuery):
                               "camera's timestamp): for a client that sends the newest frame "
                               "and skips stale ones, the motion is then predicted per second. "
                               "For every frame of the session or for none.")
+    frame_id: int | None = Field(None, ge=0, description="The camera's frame number "
+                                 "(increasing; skipped frames leave gaps): the answer carries "
+                                 "it and its messages name frames by it. For every frame of "
+                                 "the session or for none.")
 
 
 class MeasureJSON(_Model):
@@ -283,6 +287,8 @@ class TrackFrameOut(_Open):
 
     track_id: str
     frame: int = Field(description="0-based index of the frame in the session.")
+    frame_id: int = Field(description="The camera's frame number sent with the frame "
+                          "(``frame_id``), else ``frame``.")
     mode: Literal["track", "full", "lost"] = Field(description="track: from the predicted "
                                                    "edges; full: measured in full (first "
                                                    "frame, fall-back); lost: no pose.")

@@ -135,10 +135,11 @@ class TrackSessions:
 
 
 def track_frame(session: TrackSession, cell: Cell, img, flange_row,
-                t_s: float | None = None) -> dict:
+                t_s: float | None = None, frame_id: int | None = None) -> dict:
     """One frame through the session's tracker (blocking: run it in a thread), with the base
     frame when the request has a flange pose and the cell a hand-eye file; ``t_s`` the
-    frame's time (:meth:`~cutterpose.tracking.Tracker.update`).
+    frame's time and ``frame_id`` the camera's frame number
+    (:meth:`~cutterpose.tracking.Tracker.update`).
 
     Returns
     -------
@@ -146,7 +147,7 @@ def track_frame(session: TrackSession, cell: Cell, img, flange_row,
     """
     from .robot_frame import robot_frame
 
-    r = session.tracker.update(img, t_s=t_s)
+    r = session.tracker.update(img, t_s=t_s, frame_id=frame_id)
     session.frames += 1
     session.last_mode = r.mode
     # the full measurement carries its error budget's covariance; a tracked frame its std
