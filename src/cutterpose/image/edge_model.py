@@ -346,9 +346,7 @@ def blurred_profiles(radius_mm, view: EdgeView, section: CrossSection, kernels_p
     lo, hi = (int(np.ceil(abs(g) / step_px)) for g in grid_px)
     w = step_px * np.arange(-lo, hi + 1)
     sec = (section.F, section.w_end, section.face, section.beyond)
-    r = np.asarray(radius_mm, float)
-    r = _radii(r, view) if r.ndim < 4 else _radii(r.reshape((-1,) + r.shape[2:]), view
-                                                  ).reshape(r.shape)
+    r = _radii(radius_mm, view)
     raw = _raw_lean(sec, view, r, w)
     w = w.astype(np.float32)
     sig = [float(np.hypot(b, p)) for b, p in kernels_px]
@@ -524,18 +522,18 @@ def _raw_lean(section, view: EdgeView, r: np.ndarray, w: np.ndarray) -> np.ndarr
     ext[..., 1:K + 1] = F32
     ext[..., K + 1] = face
     slope[..., 1:K] = np.diff(F32, axis=-1)
-    rows = np.arange(n * 2, dtype=np.int32).reshape(n, 2, 1, 1) * (K + 2)
-    if lead and cell.ndim == 4:
+    # each row's table starts K + 2 cells after the previous one's
+    shared = bool(lead) and cell.ndim == 4
+    tables = ext.shape[-3:-1] if shared else ext.shape[:-1]
+    cell += (np.arange(int(np.prod(tables)), dtype=np.int32) * (K + 2)).reshape(
+        tables + (1, 1))
+    if shared:
         # looks sharing the radii: one index, a gather per look
-        cell += rows
         out = np.empty(lead + cell.shape, np.float32)
         for i in range(lead[0]):
             np.take(ext[i].ravel(), cell, out=out[i])
             out[i] += q * np.take(slope[i].ravel(), cell)
         return out
-    rows = np.arange(int(np.prod(ext.shape[:-1])), dtype=np.int32).reshape(
-        ext.shape[:-1] + (1, 1)) * (K + 2)
-    cell += rows
     out = np.take(ext.ravel(), cell)
     out += q * np.take(slope.ravel(), cell)
     return out

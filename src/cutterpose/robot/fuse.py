@@ -47,6 +47,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.linalg import block_diag
 from scipy.spatial.transform import Rotation
 from scipy.stats import chi2 as chi2_dist
 
@@ -85,14 +86,13 @@ def joint_covariance(cov_meas: list[np.ndarray], rho: float,
     if not 0.0 <= rho <= 1.0:
         raise InputError(f"the views' correlation must be in [0, 1], got {rho}")
     n = len(cov_meas)
-    S = [sqrt_psd(C) for C in cov_meas]
-    terms = {k: np.zeros((6 * n, 6 * n)) for k in ("measurement", "independent", "shared")}
-    for i in range(n):
-        for j in range(n):
-            blk = cov_meas[i] if i == j else rho * S[i] @ S[j].T
-            terms["measurement"][6 * i:6 * i + 6, 6 * j:6 * j + 6] = blk
-        if cov_ind is not None:
-            terms["independent"][6 * i:6 * i + 6, 6 * i:6 * i + 6] = cov_ind[i]
+    S = np.vstack([sqrt_psd(C) for C in cov_meas])                    # (6 n, 6)
+    diag = block_diag(*cov_meas)
+    on_diag = block_diag(*[np.ones((6, 6))] * n).astype(bool)
+    terms = {"measurement": np.where(on_diag, diag, rho * S @ S.T),
+             "independent": block_diag(*cov_ind) if cov_ind is not None
+             else np.zeros((6 * n, 6 * n)),
+             "shared": np.zeros((6 * n, 6 * n))}
     for G, C_s in shared or ():
         Gs = np.vstack(G)
         terms["shared"] += Gs @ C_s @ Gs.T
