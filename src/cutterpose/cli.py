@@ -521,6 +521,21 @@ def experiment_images_cmd(
 
 
 
+def _named_folders(sets: list[str]) -> dict:
+    """``NAME=FOLDER`` arguments as {name: Path}; a typed error for anything else."""
+    from pathlib import Path
+
+    from .errors import InputError
+
+    pairs = {}
+    for s in sets:
+        name, sep, folder = s.partition("=")
+        if not sep or not name or not folder:
+            raise InputError(f"{s!r}: give each set as NAME=RESULTS_DIR")
+        pairs[name] = Path(folder)
+    return pairs
+
+
 @experiment_app.command("field-table")
 @friendly
 def experiment_field_cmd(
@@ -531,17 +546,42 @@ def experiment_field_cmd(
     """The field table: accepted/refused, bias, std, p95 errors and wrong accepted poses."""
     from pathlib import Path
 
-    from .errors import InputError
     from .experiments.field import write_field
 
-    pairs = {}
-    for s in sets:
-        name, sep, folder = s.partition("=")
-        if not sep or not name or not folder:
-            raise InputError(f"{s!r}: give each set as NAME=RESULTS_DIR")
-        pairs[name] = Path(folder)
-    write_field(pairs, out)
+    write_field(_named_folders(sets), out)
     typer.echo((Path(out) / "field.md").read_text())
+
+
+@experiment_app.command("acceptance")
+@friendly
+def experiment_acceptance_cmd(
+    sets: list[str] = typer.Argument(..., help="NAME=RESULTS_DIR of `experiment images`."),
+    method: str = typer.Option("dm+b", help="The method whose verdicts are re-applied."),
+    tolerances: str = typer.Option("0.2,0.25,0.3,0.35,0.4,0.45,0.5",
+                                   help="Angle tolerances to try (3 sigma, deg, comma-separated)."),
+    position_tol_mm: float = typer.Option(1.0, help="Position tolerance at the grasp point "
+                                          "(3 sigma, mm)."),
+    out: str = typer.Option("results/acceptance",
+                            help="Output folder (acceptance.md, .json, .png)."),
+):
+    """Acceptance and the accepted errors against the verdict's angle tolerance, from runs of
+    `experiment images` (no new measurement), with the ceilings the poses set."""
+    from pathlib import Path
+
+    from .errors import InputError
+    from .experiments.acceptance import write_acceptance
+
+    pairs = _named_folders(sets)
+    try:
+        tols = [float(x) for x in tolerances.split(",") if x.strip()]
+    except ValueError:
+        raise InputError(f"--tolerances {tolerances!r}: give degrees separated by commas") from None
+    import math
+
+    if not tols or not all(t > 0 and math.isfinite(t) for t in tols):
+        raise InputError(f"--tolerances {tolerances!r}: give positive degrees")
+    write_acceptance(pairs, out, method, tols, position_tol_mm)
+    typer.echo((Path(out) / "acceptance.md").read_text())
 
 
 # ---- section: track, render-sequence (issue 13) -------------------------------------------
