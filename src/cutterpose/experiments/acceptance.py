@@ -31,6 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..errors import InputError
 from .field import BAD_ROT_DEG, BAD_TRANS_MM, _num, _read_budgets, _read_verdicts
 from .report import read_trials_csv
 
@@ -58,8 +59,6 @@ def acceptance_curve(folder, method: str = "dm+b", tolerances_deg=DEFAULT_TOLERA
     budgets = _read_budgets(folder)
     sel = [r for r in read_trials_csv(folder / "trials.csv") if r["method"] == method]
     if not sel:
-        from ..errors import InputError
-
         raise InputError(f"{folder}: no trials of method {method!r}")
     keys = [(int(r["trial"]), method) for r in sel]
     rot = np.array([float(r["rot_err_deg"]) for r in sel])
