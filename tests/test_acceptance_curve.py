@@ -88,3 +88,31 @@ def test_cli_writes_table_json_and_plot_and_rejects_bad_input(tmp_path):
     assert res.exit_code != 0 and "NAME=RESULTS_DIR" in res.output
     with pytest.raises(InputError, match="no trials of method"):
         acceptance_curve(tmp_path / "a", method="dm+")
+
+
+def test_reapplied_tolerance_equals_a_run_with_it(tmp_path):
+    """`experiment acceptance` at a tolerance gives the count that `experiment images
+    --budget-tol-deg` at that tolerance gives (the budgets are the same; only the line moves)."""
+    from cutterpose.geometry.camera_files import save_camera
+    from test_features import small_camera
+
+    cam_file = tmp_path / "small.json"
+    save_camera(small_camera(0.5), cam_file)
+    runner = CliRunner()
+    r = runner.invoke(app, ["render-set", "--out", str(tmp_path / "set"), "--count", "4",
+                            "--seed", "3", "--camera", str(cam_file), "--preset", "easy"])
+    assert r.exit_code == 0, r.output
+    counts = {}
+    for tol in ("0.3", "0.05"):
+        r = runner.invoke(app, ["experiment", "images", str(tmp_path / "set"), "--methods",
+                                "dm+", "--edge-break-mm", "0", "--budget-tol-deg", tol,
+                                "--out", str(tmp_path / f"run_{tol}")])
+        assert r.exit_code == 0, r.output
+        c = acceptance_curve(tmp_path / f"run_{tol}", method="dm+", tolerances_deg=(0.3, 0.05))
+        counts[tol] = (c["accepted_by_verdict"], [row["accepted"] for row in c["rows"]])
+    assert counts["0.3"][0] > counts["0.05"][0], counts    # the tighter run refuses more
+    assert counts["0.3"][1][1] == counts["0.05"][0]           # ... as the re-applied line says
+    assert counts["0.3"][1][0] == counts["0.3"][0]
+    bad = runner.invoke(app, ["experiment", "images", str(tmp_path / "set"), "--methods", "dm+",
+                              "--budget-tol-deg", "nan", "--out", str(tmp_path / "x")])
+    assert bad.exit_code != 0 and "--budget-tol-deg" in bad.output

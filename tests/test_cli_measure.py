@@ -113,3 +113,24 @@ def test_corners_option_adds_the_corners_to_dm_plus_b(tmp_path):
     assert a["features"]["segmentation"] == "outline"
     assert a["pose"]["R_cam_holder"] == b["pose"]["R_cam_holder"]
     assert a["pose"]["t_cam_holder_mm"] == b["pose"]["t_cam_holder_mm"]
+
+
+def test_budget_tolerance_options_set_the_measurements_own_verdict(tmp_path):
+    """--budget-tol-deg / --budget-tol-mm move the line the error budget is held to: the same
+    image accepted at the defaults is refused, with the figure, under a tighter angle; a
+    non-positive tolerance is an input error."""
+    from cutterpose.geometry.camera import default_camera
+
+    img = render_holder(Pose.from_euler(2, -3, 4, 8, -6, 612), default_camera("table1"),
+                        seed=7).image
+    cv2.imwrite(str(tmp_path / "h.png"), img)
+    plain = runner.invoke(app, ["measure", str(tmp_path / "h.png"), "--json"])
+    assert plain.exit_code == 0, plain.output
+    angle = json.loads(plain.output)["quality"]["budget"]["angle_3sigma_deg"]
+    tight = runner.invoke(app, ["measure", str(tmp_path / "h.png"), "--budget-tol-deg",
+                                f"{0.5 * angle:.4f}"])
+    assert tight.exit_code == 3 and "rotation uncertain" in tight.output
+    assert f"> {0.5 * angle:.4f}".rstrip("0") in tight.output
+    for opt in ("--budget-tol-mm", "--budget-tol-deg"):
+        bad = runner.invoke(app, ["measure", str(tmp_path / "h.png"), opt, "0"])
+        assert bad.exit_code != 0 and opt in bad.output and "Traceback" not in bad.output

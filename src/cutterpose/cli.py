@@ -53,6 +53,33 @@ def _edge_break_option():
                         "sharp edge). dm+b and dm+r measure the break and ignore it.")
 
 
+def _budget_mm_option():
+    """``--budget-tol-mm``: the measurement's own verdict (not the grasp's)."""
+    return typer.Option(1.0, "--budget-tol-mm", help="Refuse the measurement when its error "
+                        "budget's 3-sigma position at the grasp point (the pocket's centre) "
+                        "exceeds this (mm; the robot's 1 mm).")
+
+
+def _budget_deg_option():
+    return typer.Option(0.3, "--budget-tol-deg", help="Refuse the measurement when its error "
+                        "budget's 3-sigma rotation exceeds this (deg; 0.3: 1 mm at the pocket's "
+                        "ends, 200 mm from the origin; `experiment acceptance` shows what "
+                        "another value accepts on a measured set).")
+
+
+def _budget_tolerance(position_mm: float, angle_deg: float):
+    """The error budget's :class:`~cutterpose.budget.Tolerance` from the two options."""
+    import math
+
+    from .budget import Tolerance
+    from .errors import InputError
+
+    for name, v in (("--budget-tol-mm", position_mm), ("--budget-tol-deg", angle_deg)):
+        if not (math.isfinite(v) and v > 0):
+            raise InputError(f"{name} {v}: give a positive number")
+    return Tolerance(position_mm=float(position_mm), angle_deg=float(angle_deg))
+
+
 def _edge_look_option():
     """``--edge-look``, the same in every command that measures with ``dm+b``."""
     return typer.Option(None, "--edge-look", help="Edge look file from `calibrate-edge-look` "
@@ -366,6 +393,8 @@ def measure_cmd(
                                    "depth the contour cannot see)."),
     edge_break_mm: float = _edge_break_option(),
     edge_look: str = _edge_look_option(),
+    budget_tol_mm: float = _budget_mm_option(),
+    budget_tol_deg: float = _budget_deg_option(),
     corners: bool = typer.Option(False, "--corners", help="Detect the corners even when the "
                                  "method does not need them (dm+b starts from the pocket "
                                  "outline: without this its JSON has no corners_px; ~14 ms)."),
@@ -421,7 +450,8 @@ def measure_cmd(
     from .pipeline import QualityLimits
 
     m = measure(img, cam, hol, method, params=FeatureParams.for_camera(cam, chain=chain),
-                limits=QualityLimits(edge_shape=edge_shape, edge_break_mm=edge_break_mm),
+                limits=QualityLimits(edge_shape=edge_shape, edge_break_mm=edge_break_mm,
+                                     tolerance=_budget_tolerance(budget_tol_mm, budget_tol_deg)),
                 edge_look=look, corners=True if corners else None)
     m.timings_ms = {"load": load_ms} | m.timings_ms
     if robot is not None:
@@ -491,6 +521,8 @@ def experiment_images_cmd(
                                    "round, chamfer or unknown (default: both shapes fitted)."),
     edge_break_mm: float = _edge_break_option(),
     edge_look: str = _edge_look_option(),
+    budget_tol_mm: float = _budget_mm_option(),
+    budget_tol_deg: float = _budget_deg_option(),
 ):
     """Table 2 figures of every method on an image set (trials.csv, summary.md)."""
     from rich.progress import Progress
@@ -506,6 +538,7 @@ def experiment_images_cmd(
                                                         model_fallback="none")}
     if chain not in chains:
         fail(f"--chain must be one of {', '.join(chains)}, got {chain!r}")
+    tol = _budget_tolerance(budget_tol_mm, budget_tol_deg)
     with Progress(transient=True) as bar:
         task = bar.add_task("images", total=None)
         from .pipeline import QualityLimits
@@ -513,7 +546,8 @@ def experiment_images_cmd(
         look = _load_edge_look(edge_look)
         run_images(folder, names, out, workers=workers, limit=limit, scheduler=scheduler,
                    params=chains[chain](),
-                   limits=QualityLimits(edge_shape=edge_shape, edge_break_mm=edge_break_mm),
+                   limits=QualityLimits(edge_shape=edge_shape, edge_break_mm=edge_break_mm,
+                                        tolerance=tol),
                    progress=lambda done, n: bar.update(task, completed=done, total=n),
                    edge_look=look)
     typer.echo(f"wrote {out}/trials.csv, summary.md, corners.csv, failures.csv")
