@@ -6,6 +6,8 @@ file and measured with it, a 12-corner and an asymmetric 8-corner pocket come ou
 accurately as the reference one (tolerances as for the reference holder's analytic tests).
 """
 
+import json
+
 import numpy as np
 import pytest
 
@@ -53,3 +55,30 @@ def test_the_reference_holder_file_does_not_find_another_design():
                         seed=2).image
     res = measure(img, cam, default_holder(), method="dm+b")
     assert not res.ok and res.quality.reason
+
+
+def test_a_holder_with_eight_edges_is_tracked(tmp_path):
+    """The tracker needs half the holder's edges (at least 4, two per direction), not 10 of
+    the reference's 20: an 8-edge pocket is tracked frame by frame, not measured in full on
+    every frame."""
+    from dataclasses import replace
+
+    from cutterpose.render.sequence import render_sequence
+    from cutterpose.tracking import Tracker, TrackParams, approach_limits
+    from test_features import small_camera
+
+    cam = small_camera()
+    holder = holder_from_dict(HOLDERS["one step, 8 corners"])
+    render_sequence(tmp_path, 6, 640.0, 615.0, cam, holder, settings="easy", seed=4)
+    truth = json.loads((tmp_path / "truth.json").read_text())
+    tracker = Tracker(cam, holder, "dm+", limits=replace(approach_limits(), edge_break_mm=0.0))
+    results = [tracker.update(tmp_path / e["file"]) for e in truth["images"]]
+    assert [r.mode for r in results] == ["full"] + ["track"] * 5, \
+        [(r.mode, r.fallback_reason) for r in results]
+    for r, e in zip(results[1:], truth["images"][1:]):
+        assert r.lines_seen == 8
+        err = pose_errors(np.array(e["R_cam_holder"]), np.array(e["t_cam_holder_mm"]),
+                          r.pose.R, r.pose.t_mm)
+        assert float(np.ravel(err.trans_mm)[0]) < 1.0 and float(np.ravel(err.rot_deg)[0]) < 0.3
+    tp = TrackParams()
+    assert [tp.lines_needed(n) for n in (4, 8, 12, 20, 40)] == [4, 4, 6, 10, 20]

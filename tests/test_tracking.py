@@ -202,7 +202,7 @@ def test_tracker_on_a_field_sequence_tracks_within_the_band(field_sequence):
     assert len(tracked) >= len(frames) // 2, [(r.mode, r.fallback_reason) for r in results]
     # the lumps: some tracked frame left edges out, and its pose rests on the rest
     assert min(r.lines_seen for r, _ in tracked) < 20
-    assert all(r.lines_seen >= tracker.tp.min_lines for r, _ in tracked)
+    assert all(r.lines_seen >= tracker.tp.lines_needed(20) for r, _ in tracked)
     for r, e in tracked:
         full = measure(d / e["file"], FIELD_CAM, hol, "dm+", approach_params(FIELD_CAM),
                        SHARP)

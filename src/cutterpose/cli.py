@@ -53,6 +53,13 @@ def _edge_break_option():
                         "sharp edge). dm+b and dm+r measure the break and ignore it.")
 
 
+def _holder_render_option():
+    """``--holder`` of the renderers: the design to render (written into truth.json, so that
+    the experiments measure with it)."""
+    return typer.Option(None, "--holder", help="Holder JSON file to render (default: the "
+                        "bundled holder); truth.json carries it, so experiments measure with it.")
+
+
 def _budget_mm_option():
     """``--budget-tol-mm``: the measurement's own verdict (not the grasp's)."""
     return typer.Option(1.0, "--budget-tol-mm", help="Refuse the measurement when its error "
@@ -302,11 +309,15 @@ def render_set_cmd(
     views: int = typer.Option(1, min=1, help="pbr: each holder seen from this many random "
                               "poses (a retake's views: the same wear and slurry, another "
                               "viewpoint); --count images in all."),
+    holder: str = _holder_render_option(),
 ):
     """Render an image set with its truth.json (PROTOCOL.md, exchange formats)."""
     from rich.progress import Progress
 
     from .errors import InputError
+    from .geometry.holder import load_holder
+
+    hol = load_holder(holder) if holder else None
 
     dist = None
     if distance_mm is not None:
@@ -345,7 +356,7 @@ def render_set_cmd(
         cam = _render_camera(camera)
         with Progress(transient=True, console=None) as bar:
             task = bar.add_task(f"rendering ({fp.name}, pbr)", total=count)
-            path = render_field_set(count, seed, out, fp, cam, variant=variant, spp=spp,
+            path = render_field_set(count, seed, out, fp, cam, hol, variant=variant, spp=spp,
                                     progress=lambda done, n: bar.update(task, completed=done),
                                     resume=resume, distance_mm=dist, views=views)
         typer.echo(f"wrote {count} images and {path}")
@@ -365,7 +376,8 @@ def render_set_cmd(
     cam = _render_camera(camera)
     with Progress(transient=True, console=None) as bar:
         task = bar.add_task("rendering", total=count)
-        path = render_set(count, seed, out, cam, mix=mix, workers=workers, scheduler=scheduler,
+        path = render_set(count, seed, out, cam, hol, mix=mix, workers=workers,
+                          scheduler=scheduler,
                           progress=lambda done, n: bar.update(task, completed=done),
                           poses=poses, distance_mm=dist)
     typer.echo(f"wrote {count} images and {path}")
@@ -750,12 +762,16 @@ def render_sequence_cmd(
     jump_mm: str = typer.Option("30,0,0", help="The jump X,Y,Z in mm."),
     workers: int = typer.Option(1, min=1, help="Worker processes."),
     scheduler: str = typer.Option(None, "--scheduler", help="Dask scheduler address."),
+    holder: str = _holder_render_option(),
 ):
     """Render an approach sequence: the camera moving from --z-start to --z-end mm."""
     from rich.progress import Progress
 
     from .errors import InputError
+    from .geometry.holder import load_holder
     from .render.sequence import render_sequence
+
+    hol = load_holder(holder) if holder else None
 
     try:
         dropped = tuple(int(x) for x in drop.split(",") if x.strip())
@@ -766,7 +782,7 @@ def render_sequence_cmd(
                          f"{jump_mm!r}") from None
     with Progress(transient=True) as bar:
         task = bar.add_task("rendering", total=frames - len(dropped))
-        path = render_sequence(out, frames, z_start, z_end, _render_camera(camera),
+        path = render_sequence(out, frames, z_start, z_end, _render_camera(camera), hol,
                                settings=preset, seed=seed, engine_name=engine, drop=dropped,
                                jump_at=jump_at, jump_mm=jump, workers=workers,
                                scheduler=scheduler, spp=spp,

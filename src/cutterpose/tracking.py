@@ -22,10 +22,11 @@ contour lies, and the region search, threshold and contour segmentation are skip
    again. The bands are re-centred on the fitted pose and the edges found again while the fit
    moved them (by more than ``centred_fraction`` of the band, up to ``max_passes``). The std
    per DOF is the Gauss-Newton covariance ``s^2 (J^T J)^-1`` as in :mod:`cutterpose.pipeline`;
-4. **checks** (every tracked frame): at least ``min_lines`` edges seen (two per direction),
+4. **checks** (every tracked frame): at least half the holder's edges seen
+   (``min_line_share``; two per direction),
    the bands settled (the last pass's fit moved them little), the RMS and largest model-to-edge
    distance below ``max_rms_px`` / ``max_corner_residual_px``, and the seen edges fixing
-   every DOF within ``max_std_ratio`` of the std all 20 would give (a family of short edges
+   every DOF within ``max_std_ratio`` of the std all edges would give (a family of short edges
    lost far away leaves X or Z loose: that is not the full measurement's accuracy). A frame
    that fails any of them (a jump, an occluder, lost edges) falls back to the full
    measurement and says why.
@@ -294,6 +295,8 @@ VIEW_REACH = 0.15
 #: the scale (px) of a tracked edge's distance from the model, against which an unmeasured
 #: edge's offset prior is weighed (the tracked frames' RMS is 0.3-0.6 px on broken edges)
 LINE_SCALE_PX = 0.3
+#: the fewest edges a tracked frame may rest on, whatever the holder's design
+MIN_LINES = 4
 
 
 def _offset_slope(pose: Pose, points_mm: np.ndarray, normals: np.ndarray, L: np.ndarray,
@@ -369,7 +372,9 @@ class TrackParams:
     max_rms_px: float = 0.6
     max_corner_residual_px: float = 1.5
     rms_ref_factor: float = 1.0
-    min_lines: int = 10               #: edges seen (of 20; >= 2 per direction) for a pose
+    #: edges seen for a pose, as a share of the holder's edges (10 of the reference's 20),
+    #: at least ``MIN_LINES``, and two per direction (:meth:`lines_needed`)
+    min_line_share: float = 0.5
     shift_fraction: float = 0.75      #: a seen edge lies within this share of the band
     #: the last pass's pose fit moved the bands by at most this share of them (the edges may
     #: lie farther from the model: the residual limits judge that)
@@ -380,7 +385,7 @@ class TrackParams:
     line_outlier_px: float = 0.25
     line_outlier_factor: float = 4.0
     max_dropped_lines: int = 3
-    #: the seen edges must fix every DOF within this factor of all 20 edges' std
+    #: the seen edges must fix every DOF within this factor of all the holder's edges' std
     max_std_ratio: float = 1.5
     filter_alpha: float = 0.5         #: alpha-beta filter gains (beta: Benedict-Bordner)
     filter_beta: float = 0.5 ** 2 / 1.5
@@ -426,6 +431,12 @@ class TrackParams:
     #: edge of the band fit's radius images (docs/tracking.md, "Broken edges: the offsets");
     #: False: a length on the holder, constant until the next anchor
     view_model: bool = True
+
+    def lines_needed(self, n_edges: int) -> int:
+        """Edges a tracked frame must see on a holder of ``n_edges`` edges: the share
+        ``min_line_share`` of them, at least :data:`MIN_LINES` (six pose DOFs from two lines
+        per direction and their spacing) and never more than the holder has."""
+        return min(n_edges, max(MIN_LINES, math.ceil(self.min_line_share * n_edges - 1e-9)))
 
     def for_camera(self, camera: Camera) -> TrackParams:
         k = camera.focal_px / (0.00854103 / 3.45e-6)
@@ -493,7 +504,7 @@ class TrackResult:
     measurement: Measurement | None = None
     timings_ms: dict = field(default_factory=dict)
     passes: int = 0   #: edge passes (tracking: 2 when the first pass's fit moved the bands)
-    lines_seen: int = 0    #: tracking: edges with enough inlier support (of 20)
+    lines_seen: int = 0    #: tracking: edges with enough inlier support (of the holder's)
     corners_used: int = 0  #: tracking: corners whose two lines were seen
     lines_dropped: int = 0  #: tracking: seen edges left out as off the fitted model
     #: ``dm+b`` tracking: "re-anchored" when the edges' offsets from the design edge were
@@ -1040,7 +1051,7 @@ class Tracker:
                 return
             lines, seen, _ = found
             fam = np.bincount(np.nonzero(seen)[0] % 2, minlength=2)
-            if seen.sum() >= tp.min_lines and fam.min() >= 2:
+            if seen.sum() >= tp.lines_needed(len(seen)) and fam.min() >= 2:
                 self._set_offsets(m.pose, lines, seen, m.std_dof, k, 1.0)
 
     def _anchor_due(self, pose: Pose, k: int) -> bool:
@@ -1407,9 +1418,9 @@ class Tracker:
             found, lines_found = seen, lines
             new = seen & ~self._measured if self._measured is not None else None
             fam = np.bincount(np.arange(n)[seen] % 2, minlength=2)
-            if seen.sum() < tp.min_lines or fam.min() < 2:
+            if seen.sum() < tp.lines_needed(n) or fam.min() < 2:
                 worst = int(np.argmin(support))
-                return (f"only {int(seen.sum())} of {n} edges seen (< {tp.min_lines}, or < 2 "
+                return (f"only {int(seen.sum())} of {n} edges seen (< {tp.lines_needed(n)}, or < 2 "
                         f"per direction; least-supported edge {worst}: "
                         f"{100 * support[worst]:.0f} % of it): jump, occlusion or lost edges")
             start = pose
@@ -1424,7 +1435,7 @@ class Tracker:
                 misfit = np.maximum(np.abs(r[:len(ks)]), np.abs(r[len(ks):]))
                 worst = int(np.argmax(misfit))
                 bar = max(tp.line_outlier_px, tp.line_outlier_factor * float(np.median(misfit)))
-                if misfit[worst] <= bar or seen.sum() <= tp.min_lines:
+                if misfit[worst] <= bar or seen.sum() <= tp.lines_needed(n):
                     break
                 seen = seen.copy()
                 seen[ks[worst]] = False
@@ -1580,7 +1591,7 @@ class Tracker:
         s2 = float(r @ r) / max(r.size - 6, 1)
         std = np.sqrt(np.clip(np.diag(s2 * np.linalg.inv(J.T @ J)), 0, None))
         # the edges left out cost information: a DOF that the seen edges pin down much worse
-        # than all 20 would (a short edge family lost, far away) is not the full
+        # than all of them would (a short edge family lost, far away) is not the full
         # measurement's accuracy, so the frame is measured in full
         ratio = self._std_ratio(pose, seen, J2, new)
         j = int(np.argmax(ratio))
