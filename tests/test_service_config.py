@@ -43,6 +43,7 @@ def test_tolerance_keys_are_quality_limit_fields():
     ("default_holder = \"other\"\n", "default_holder"),
     ("[holders]\ndefault = \"missing.json\"\n", "holders.default"),
     ("name = 3\n", "name"),
+    ("distance_mm = -600\n", "distance_mm"),
     ("camera = [\n", "not valid TOML"),
 ])
 def test_a_bad_field_is_named(tmp_path, body, field):
@@ -105,3 +106,18 @@ def test_robot_section(tmp_path):
     (tmp_path / "cell.toml").write_text('chain = "magic"\n')
     with pytest.raises(CellFileError, match="chain"):
         load_cell(tmp_path / "cell.toml", env=ENV)
+
+
+def test_station_distance_sets_the_search_and_the_range(tmp_path):
+    """``distance_mm``: the region search's outline at that depth and the working range
+    centred there; an explicit ``range_center_dof`` wins; without it the paper's 600 mm."""
+    p = tmp_path / "cell.toml"
+    p.write_text("distance_mm = 720\n")
+    cell = load_cell(p, env=ENV)
+    assert cell.feature_params().roi_depths_mm == (720.0,)
+    assert cell.limits.range_center_dof == (0.0, 0.0, 0.0, 0.0, 0.0, 720.0)
+    p.write_text("distance_mm = 720\n[tolerances]\nrange_center_dof = [0, 0, 0, 5, 0, 700]\n")
+    assert load_cell(p, env=ENV).limits.range_center_dof == (0, 0, 0, 5, 0, 700)
+    plain = load_cell(None, env=ENV)
+    assert plain.feature_params().roi_depths_mm == (600.0,)
+    assert plain.limits.range_center_dof[5] == 600.0

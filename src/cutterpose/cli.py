@@ -407,6 +407,10 @@ def measure_cmd(
     edge_look: str = _edge_look_option(),
     budget_tol_mm: float = _budget_mm_option(),
     budget_tol_deg: float = _budget_deg_option(),
+    distance_mm: float = typer.Option(None, "--distance-mm", help="The measuring station: "
+                                      "camera to holder, mm (default: the paper's 600). The "
+                                      "region search looks for the holder at this size and the "
+                                      "working range (+-20 mm) is centred on it."),
     corners: bool = typer.Option(False, "--corners", help="Detect the corners even when the "
                                  "method does not need them (dm+b starts from the pocket "
                                  "outline: without this its JSON has no corners_px; ~14 ms)."),
@@ -452,18 +456,18 @@ def measure_cmd(
                  load_flange_pose(flange_pose, convention, length_unit, angle_unit),
                  RobotAccuracy(robot_accuracy_mm, robot_accuracy_deg),
                  GraspTolerance(position_tol_mm, angle_deg=angle_tol_deg))
-    from .image import FeatureParams
 
     if chain not in ("field", "paper"):
         fail(f"--chain must be 'field' or 'paper', got {chain!r}")
     t0 = time.perf_counter()
     img = load_frame(image, cam, parse_raw_size(raw) if raw else None)
     load_ms = (time.perf_counter() - t0) * 1e3
-    from .pipeline import QualityLimits
+    from .pipeline import QualityLimits, station_center_dof, station_params
 
-    m = measure(img, cam, hol, method, params=FeatureParams.for_camera(cam, chain=chain),
+    m = measure(img, cam, hol, method, params=station_params(cam, chain, distance_mm),
                 limits=QualityLimits(edge_shape=edge_shape, edge_break_mm=edge_break_mm,
-                                     tolerance=_budget_tolerance(budget_tol_mm, budget_tol_deg)),
+                                     tolerance=_budget_tolerance(budget_tol_mm, budget_tol_deg),
+                                     range_center_dof=station_center_dof(distance_mm)),
                 edge_look=look, corners=True if corners else None)
     m.timings_ms = {"load": load_ms} | m.timings_ms
     if robot is not None:

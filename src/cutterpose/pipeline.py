@@ -70,7 +70,7 @@ from .solvers.estimate import PoseEstimate
 __all__ = ["QualityLimits", "Quality", "Measurement", "measure", "measure_features",
            "order_for_model", "pose_std", "demo", "DOF_NAMES", "edge_wear_effect",
            "band_budget", "band_verdict", "edge_break_effect", "UNKNOWN_EDGE_BREAK_MM",
-           "fit_offset"]
+           "fit_offset", "NOMINAL_DISTANCE_MM", "station_center_dof", "station_params"]
 
 #: the pocket edge's break shapes a holder's drawing may give (QualityLimits.edge_shape)
 EDGE_SHAPES = ("round", "chamfer", "unknown")
@@ -133,6 +133,34 @@ class QualityLimits:
         """The break the corner methods' budget carries (:attr:`edge_break_mm` or, not given,
         :data:`UNKNOWN_EDGE_BREAK_MM`)."""
         return UNKNOWN_EDGE_BREAK_MM if self.edge_break_mm is None else float(self.edge_break_mm)
+
+
+#: the paper's measuring station: the camera 600 mm from the holder's top face
+NOMINAL_DISTANCE_MM = 600.0
+
+
+def _distance(distance_mm) -> float:
+    z = NOMINAL_DISTANCE_MM if distance_mm is None else distance_mm
+    if isinstance(z, bool) or not isinstance(z, numbers.Real) or not (math.isfinite(z) and z > 0):
+        raise InputError(f"the station distance must be a positive number of mm, got "
+                         f"{distance_mm!r}")
+    return float(z)
+
+
+def station_center_dof(distance_mm: float | None = None) -> tuple:
+    """The working range's centre for a measuring station ``distance_mm`` from the holder
+    (the holder square to the camera, on its axis): ``(0, 0, 0, 0, 0, distance_mm)``."""
+    return (0.0, 0.0, 0.0, 0.0, 0.0, _distance(distance_mm))
+
+
+def station_params(camera: Camera, chain: str = "field",
+                   distance_mm: float | None = None) -> FeatureParams:
+    """The image stage's parameters for ``camera`` at a measuring station ``distance_mm`` from
+    the holder (None: the paper's 600 mm): the region search's outline templates at that
+    depth (``FeatureParams.roi_depths_mm``), the rest scaled to the focal length."""
+    if distance_mm is None:
+        return FeatureParams.for_camera(camera, chain=chain)
+    return FeatureParams.for_camera(camera, chain=chain, roi_depths_mm=(_distance(distance_mm),))
 
 
 @dataclass

@@ -7,6 +7,9 @@ bundled Table 1 cell (``cutterpose/data/cell_table1.toml``)::
 
     name = "cell 1"
     camera = "camera.json"            # a camera file, or "table1" / "synthetic" (bundled)
+    distance_mm = 600                 # the robot's measuring station: camera to holder, mm
+                                      # (the region search's scale and the working range's
+                                      # centre; [tolerances] range_center_dof wins)
     method = "dm+b"                   # pose method (cutterpose.methods)
     chain = "field"                   # image chain: field (default) or paper (section 2.1)
     handeye = "handeye.json"          # eye-in-hand calibration (PROTOCOL.md "Hand-eye file")
@@ -65,7 +68,7 @@ from ..geometry.camera_files import load_camera
 from ..geometry.holder import Holder, default_holder, load_holder
 from ..image import FeatureParams
 from ..methods import get_method
-from ..pipeline import QualityLimits
+from ..pipeline import QualityLimits, station_center_dof, station_params
 from ..robot import GraspTolerance, RobotAccuracy
 
 __all__ = ["Cell", "ServiceSettings", "load_cell", "bundled_cell_path", "TOKEN_ENV",
@@ -141,6 +144,7 @@ class _Service(_Strict):
 class _CellFile(_Strict):
     name: str = "cell"
     camera: str = "table1"
+    distance_mm: Positive | None = None
     method: str = "dm+b"
     chain: Literal["field", "paper"] = "field"
     handeye: str | None = None
@@ -188,13 +192,16 @@ class Cell:
     token: str = field(default="", repr=False)
     #: dm+b's edge look calibrated in the cell (None: the generic looks)
     edge_look: EdgeLookCalibration | None = None
+    #: the measuring station's camera-to-holder distance (None: the paper's 600 mm)
+    distance_mm: float | None = None
 
     def holder(self, name: str | None) -> Holder:
         return self.holders[name or self.default_holder]
 
     def feature_params(self) -> FeatureParams:
-        """The image processing parameters, as ``cutterpose measure --chain`` uses them."""
-        return FeatureParams.for_camera(self.camera, chain=self.chain)
+        """The image processing parameters, as ``cutterpose measure --chain --distance-mm``
+        uses them."""
+        return station_params(self.camera, self.chain, self.distance_mm)
 
     def for_worker(self) -> Cell:
         """This cell without the token (what is pickled to the worker processes)."""
@@ -317,6 +324,8 @@ def load_cell(path: str | Path | None = None, env: dict | None = None,
     overrides = {k: v for k, v in cf.tolerances.model_dump().items() if v is not None}
     if "tolerance" in overrides:
         overrides["tolerance"] = Tolerance(**overrides["tolerance"])
+    if cf.distance_mm is not None and "range_center_dof" not in overrides:
+        overrides["range_center_dof"] = station_center_dof(cf.distance_mm)
     limits = QualityLimits(**overrides)
     s = cf.service
     data_dir = env.get(DATA_DIR_ENV) or s.data_dir or "cutterpose-data"
@@ -334,6 +343,7 @@ def load_cell(path: str | Path | None = None, env: dict | None = None,
         except CellFileError as e:
             raise CellFileError(f"{path}: {e}") from None
     return Cell(path=path, name=cf.name, camera=camera, camera_source=cf.camera,
+                distance_mm=cf.distance_mm,
                 holders=holders, default_holder=cf.default_holder, method=cf.method,
                 chain=cf.chain, limits=limits, handeye=handeye, handeye_path=handeye_path,
                 robot_accuracy=accuracy, grasp_tolerance=tolerance, service=service,
