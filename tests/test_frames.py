@@ -100,3 +100,28 @@ def test_cli_measure_raw(frame):
     r = runner.invoke(app, ["measure", str(d / "nosidecar.bin"), "--raw", f"{w}x{h + 1}",
                             "--camera", str(d / "cam.json")])
     assert r.exit_code == 2 and "bytes but" in r.output and "Traceback" not in r.output
+
+
+@pytest.mark.parametrize("bits", [10, 12, 16])
+def test_a_16_bit_file_of_any_depth_is_measured_as_its_8_bit_frame(frame, tmp_path, bits):
+    """A Mono10/12 frame saved LSB-aligned in a 16-bit PNG (0..2^bits - 1) and a full 16-bit
+    one give the 8-bit frame's pixels and pose; before, the 12-bit one read as black."""
+    d, img = frame
+    wide = (img.astype(np.uint16) << (bits - 8)) | np.uint16((1 << (bits - 8)) - 1)
+    cv2.imwrite(str(tmp_path / "f16.png"), wide)
+    grey = load_frame(tmp_path / "f16.png")
+    np.testing.assert_array_equal(grey, img)
+    m8 = measure(img, CAM, limits=SHARP, method="dm+")
+    m16 = measure(tmp_path / "f16.png", CAM, limits=SHARP, method="dm+")
+    assert m16.ok, m16.quality.reason
+    np.testing.assert_array_equal(m16.pose.dof, m8.pose.dof)
+
+
+def test_a_dark_16_bit_frame_is_still_black():
+    """Noise under a lens cap stays black in a 16-bit container (its depth is 8 bits)."""
+    from cutterpose.image.preprocessing import as_grey_u8, check_image
+
+    rng = np.random.default_rng(1)
+    cap = rng.integers(0, 12, (CAM.image_size_px[1], CAM.image_size_px[0])).astype(np.uint16)
+    with pytest.raises(ImageError, match="black"):
+        check_image(as_grey_u8(cap), CAM)

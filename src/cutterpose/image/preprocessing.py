@@ -50,8 +50,17 @@ def _png_truncated(data: np.ndarray) -> bool:
     return is_png and b"IEND" not in bytes(data[-32:])
 
 
+#: the bit depths a 16-bit container may hold (Mono10, Mono12, Mono14 and full 16-bit frames)
+U16_DEPTHS = (8, 10, 12, 14, 16)
+
+
 def as_grey_u8(img: np.ndarray, where: str = "image") -> np.ndarray:
-    """An image array as contiguous 8-bit grey (colour -> grey, 16 bit / float -> 8 bit)."""
+    """An image array as contiguous 8-bit grey (colour -> grey, 16 bit / float -> 8 bit).
+
+    A 16-bit array keeps its top 8 significant bits: its depth is the least of
+    :data:`U16_DEPTHS` that holds its largest value, so a 12-bit camera's frame saved
+    LSB-aligned (0..4095, as GigE Vision's Mono12 and most 16-bit PNG/TIFF writers store it)
+    becomes ``v >> 4``, not the near-black ``v >> 8`` a full 16-bit frame needs."""
     a = np.asarray(img)
     if a.ndim == 3 and a.shape[2] in (3, 4):
         a = cv2.cvtColor(a, cv2.COLOR_BGR2GRAY if a.shape[2] == 3 else cv2.COLOR_BGRA2GRAY)
@@ -61,7 +70,9 @@ def as_grey_u8(img: np.ndarray, where: str = "image") -> np.ndarray:
         raise ImageError(f"{where}: expected a grey or colour image, got an array of shape "
                          f"{a.shape}")
     if a.dtype == np.uint16:
-        a = (a >> 8).astype(np.uint8)
+        top = int(a.max()) if a.size else 0
+        bits = next(b for b in U16_DEPTHS if top < (1 << b))
+        a = (a >> (bits - 8)).astype(np.uint8)
     elif a.dtype != np.uint8:
         if not np.issubdtype(a.dtype, np.number) or not np.all(np.isfinite(a)):
             raise ImageError(f"{where}: image holds non-numeric or non-finite values")
