@@ -616,6 +616,7 @@ def experiment_acceptance_cmd(
 ):
     """Acceptance and the accepted errors against the verdict's angle tolerance, from runs of
     `experiment images` (no new measurement), with the ceilings the poses set."""
+    import math
     from pathlib import Path
 
     from .errors import InputError
@@ -626,8 +627,6 @@ def experiment_acceptance_cmd(
         tols = [float(x) for x in tolerances.split(",") if x.strip()]
     except ValueError:
         raise InputError(f"--tolerances {tolerances!r}: give degrees separated by commas") from None
-    import math
-
     if not tols or not all(t > 0 and math.isfinite(t) for t in tols):
         raise InputError(f"--tolerances {tolerances!r}: give positive degrees")
     write_acceptance(pairs, out, method, tols, position_tol_mm)
