@@ -125,3 +125,56 @@ def test_a_dark_16_bit_frame_is_still_black():
     cap = rng.integers(0, 12, (CAM.image_size_px[1], CAM.image_size_px[0])).astype(np.uint16)
     with pytest.raises(ImageError, match="black"):
         check_image(as_grey_u8(cap), CAM)
+
+
+def _wide_formats(img, rng):
+    """The 8-bit frame as 12-bit pixels (random low bits) in Mono12, Mono12Packed and
+    Mono12p, packed as GigE Vision 2.0 and PFNC 2.1 describe them."""
+    p = (img.astype(np.uint16) << 4) | rng.integers(0, 16, img.shape, dtype=np.uint16)
+    p0, p1 = p.reshape(-1)[0::2], p.reshape(-1)[1::2]
+    gev = np.stack([p0 >> 4, (p0 & 0xF) | ((p1 & 0xF) << 4), p1 >> 4], axis=1)
+    pfnc = np.stack([p0 & 0xFF, (p0 >> 8) | ((p1 & 0xF) << 4), p1 >> 4], axis=1)
+    return {"Mono12": p.astype("<u2").tobytes(),
+            "Mono12Packed": gev.astype(np.uint8).tobytes(),
+            "Mono12p": pfnc.astype(np.uint8).tobytes()}
+
+
+@pytest.mark.parametrize("fmt", ["Mono12", "Mono12Packed", "Mono12p"])
+def test_wide_raw_formats_give_the_8_bit_frame(frame, tmp_path, fmt):
+    """A camera set to 12 bits: the buffer, the file with a sidecar and the CLI's --raw
+    --pixel-format all give the 8-bit frame (each pixel's top 8 bits) and its pose."""
+    d, img = frame
+    h, w = img.shape
+    data = _wide_formats(img, np.random.default_rng(3))[fmt]
+    np.testing.assert_array_equal(frame_from_buffer(data, w, h, pixel_format=fmt), img)
+    (tmp_path / "f.raw").write_bytes(data)
+    (tmp_path / "f.raw.json").write_text(json.dumps({"width": w, "height": h,
+                                                     "pixel_format": fmt}))
+    np.testing.assert_array_equal(load_frame(tmp_path / "f.raw"), img)
+    (tmp_path / "g.bin").write_bytes(data)
+    res = runner.invoke(app, ["measure", str(tmp_path / "g.bin"), "--raw", f"{w}x{h}",
+                              "--pixel-format", fmt, "--camera", str(d / "cam.json"),
+                              "--method", "dm+", "--edge-break-mm", "0", "--json"])
+    png = runner.invoke(app, ["measure", str(d / "f.png"), "--camera", str(d / "cam.json"),
+                              "--method", "dm+", "--edge-break-mm", "0", "--json"])
+    assert res.exit_code == 0 and png.exit_code == 0, res.output + png.output
+    assert json.loads(res.output)["pose"] == json.loads(png.output)["pose"]
+
+
+def test_wide_raw_format_errors_are_typed(frame, tmp_path):
+    d, img = frame
+    h, w = img.shape
+    data = _wide_formats(img, np.random.default_rng(4))
+    with pytest.raises(ImageError, match="packed 12-bit"):
+        frame_from_buffer(data["Mono12Packed"], w, h)          # read as Mono8: 1.5x the bytes
+    with pytest.raises(ImageError, match="Mono12Packed needs"):
+        frame_from_buffer(data["Mono12"], w, h, pixel_format="Mono12Packed")
+    with pytest.raises(ImageError, match="even number of pixels"):
+        frame_from_buffer(b"\0" * 3, 1, 1, pixel_format="Mono12p")
+    with pytest.raises(ImageError, match="not read"):
+        frame_from_buffer(data["Mono12"], w, h, pixel_format="BayerRG12")
+    (tmp_path / "f.raw").write_bytes(data["Mono12"])
+    (tmp_path / "f.raw.json").write_text(json.dumps({"width": w, "height": h,
+                                                     "pixel_format": "RGB8"}))
+    with pytest.raises(ImageError, match="pixel_format"):
+        load_frame(tmp_path / "f.raw")

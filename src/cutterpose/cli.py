@@ -60,6 +60,14 @@ def _holder_render_option():
                         "bundled holder); truth.json carries it, so experiments measure with it.")
 
 
+def _pixel_format_option():
+    """``--pixel-format`` of raw frames, the same in ``measure`` and ``track``."""
+    return typer.Option(None, "--pixel-format", help="Raw frames' pixel format: Mono8 "
+                        "(default), Mono10, Mono12, Mono14, Mono16 (2 bytes, LSB-aligned), "
+                        "Mono12Packed (GigE Vision) or Mono12p (PFNC); a sidecar's "
+                        "pixel_format is used when this is not given.")
+
+
 def _budget_mm_option():
     """``--budget-tol-mm``: the measurement's own verdict (not the grasp's)."""
     return typer.Option(1.0, "--budget-tol-mm", help="Refuse the measurement when its error "
@@ -387,10 +395,11 @@ def render_set_cmd(
 @friendly
 def measure_cmd(
     image: str = typer.Argument(..., help="Image of the holder (PNG, JPEG, TIFF...), or a raw "
-                                "8-bit frame (.raw with a sidecar <file>.json, or --raw)."),
+                                "frame (.raw with a sidecar <file>.json, or --raw)."),
     camera: str = typer.Option(None, help="table1 (default), synthetic, or a camera file."),
-    raw: str = typer.Option(None, "--raw", help="Read IMAGE as a raw Mono8 frame of "
-                            "WIDTHxHEIGHT pixels (as a GigE camera delivers it; no decode)."),
+    raw: str = typer.Option(None, "--raw", help="Read IMAGE as a raw frame of WIDTHxHEIGHT "
+                            "pixels (as a GigE camera delivers it; Mono8: no decode)."),
+    pixel_format: str = _pixel_format_option(),
     holder: str = typer.Option(None, help="Holder JSON file (default: the bundled holder)."),
     method: str = typer.Option("dm+b", help="Pose method (cutterpose.methods; dm+b: the design "
                                "edge's pose from the band across each broken edge; dm+r: from "
@@ -460,7 +469,7 @@ def measure_cmd(
     if chain not in ("field", "paper"):
         fail(f"--chain must be 'field' or 'paper', got {chain!r}")
     t0 = time.perf_counter()
-    img = load_frame(image, cam, parse_raw_size(raw) if raw else None)
+    img = load_frame(image, cam, parse_raw_size(raw) if raw else None, pixel_format)
     load_ms = (time.perf_counter() - t0) * 1e3
     from .pipeline import QualityLimits, station_center_dof, station_params
 
@@ -637,7 +646,7 @@ def experiment_acceptance_cmd(
 FRAME_SUFFIXES = (".png", ".tif", ".tiff", ".bmp", ".jpg", ".jpeg", ".pgm", ".raw", ".mono8")
 
 
-def _frames(source: str, raw_size):
+def _frames(source: str, raw_size, pixel_format=None):
     """(name, frame) of a folder of frames (sorted names) or of a video file."""
     from pathlib import Path
 
@@ -650,7 +659,7 @@ def _frames(source: str, raw_size):
         if not files:
             raise InputError(f"{p}: no frames ({', '.join(FRAME_SUFFIXES)})")
         for q in files:
-            yield q.name, load_frame(q, raw_size=raw_size)
+            yield q.name, load_frame(q, raw_size=raw_size, pixel_format=pixel_format)
         return
     if not p.is_file():
         raise InputError(f"{p}: neither a folder of frames nor a video file")
@@ -685,7 +694,8 @@ def track_cmd(
                                "a band fit as the view changes, 'anchor' per frame; dm+: the "
                                "seen edges, for a sharp edge (--edge-break-mm 0) or a binned "
                                "camera)."),
-    raw: str = typer.Option(None, "--raw", help="Frames are raw Mono8 files of WIDTHxHEIGHT."),
+    raw: str = typer.Option(None, "--raw", help="Frames are raw files of WIDTHxHEIGHT."),
+    pixel_format: str = _pixel_format_option(),
     filter_: bool = typer.Option(False, "--filter", help="Also report a constant-velocity "
                                  "filtered pose (beside the raw one)."),
     json_lines: bool = typer.Option(False, "--json-lines", help="One JSON object per frame."),
@@ -717,7 +727,8 @@ def track_cmd(
     size = parse_raw_size(raw) if raw else None
     modes, times, anchors, beside = {}, [], 0, 0
     with tracker:
-        results = ((name, tracker.update(frame)) for name, frame in _frames(source, size))
+        results = ((name, tracker.update(frame))
+                   for name, frame in _frames(source, size, pixel_format))
         for name, r in results:
             _track_line(r, name, modes, times, json_lines)
             anchors += r.anchor.startswith("re-anchored")
