@@ -217,21 +217,30 @@ def _shape(look: EdgeLook):
     return 1 - u, u, np.full_like(u, k), np.full_like(u, k)
 
 
+def _light_terms(n_o, n_z, view: EdgeView, shininesses):
+    """The lighting of surface normals ``(n_o, n_z)`` (arrays of shape (N, 2, ...)) at every
+    edge end, the part every look shares: ``n.v``, the Lambert sum ``sum_j max(n.l_j, 0)`` and,
+    per shininess ``m``, the Blinn-Phong sum ``sum_j max(n.h_j, 0)^m`` over the light's
+    ``n_l`` points. A look's grey is ``(albedo diffuse + specular gloss lobe[m]) / n_l`` where
+    ``n.v > 0`` (:func:`_shade`)."""
+    extra = (None,) * (np.ndim(n_o) - 2)
+    nv = n_o * view.v_o[(...,) + extra] + n_z * view.v_z[(...,) + extra]
+    diffuse, lobe = 0.0, {m: 0.0 for m in shininesses}
+    for j in range(view.l_o.shape[-1]):
+        nl = n_o * view.l_o[..., j][(...,) + extra] + n_z * view.l_z[..., j][(...,) + extra]
+        nh = np.clip((nl + nv) / view.h_n[..., j][(...,) + extra], 0, None)
+        diffuse = diffuse + np.clip(nl, 0, None)
+        for m in lobe:
+            lobe[m] = lobe[m] + nh ** m
+    return nv, diffuse, lobe
+
+
 def _shade(n_o, n_z, albedo, gloss, view: EdgeView, look: EdgeLook):
     """Grey of surface normals ``(n_o, n_z)`` (arrays of shape (N, 2, ...)) at every edge end;
     0 where the surface faces away from the camera."""
-    extra = (None,) * (np.ndim(n_o) - 2)
-    v_o, v_z = view.v_o[(...,) + extra], view.v_z[(...,) + extra]
-    nv = n_o * v_o + n_z * v_z
-    out = 0.0
-    n_l = view.l_o.shape[-1]
-    for j in range(n_l):
-        lo, lz = view.l_o[..., j][(...,) + extra], view.l_z[..., j][(...,) + extra]
-        nl = n_o * lo + n_z * lz
-        nh = (nl + nv) / view.h_n[..., j][(...,) + extra]
-        out = out + albedo * np.clip(nl, 0, None) + look.specular * gloss * np.clip(
-            nh, 0, None) ** look.shininess
-    return np.where(nv > 0, out / n_l, 0.0)
+    nv, diffuse, lobe = _light_terms(n_o, n_z, view, (look.shininess,))
+    out = albedo * diffuse + look.specular * gloss * lobe[look.shininess]
+    return np.where(nv > 0, out / view.l_o.shape[-1], 0.0)
 
 
 def _kernel(look: EdgeLook, h: float) -> np.ndarray:
@@ -443,15 +452,8 @@ def _cross_sections(view: EdgeView, looks):
         raise ValueError("_cross_sections: the looks must share their shape")
     n = view.a_s.shape[0]
     w_end, n_o, n_z = _section_geometry(view, looks[0].shape)
-    nv = n_o * view.v_o[..., None] + n_z * view.v_z[..., None]
+    nv, diffuse, lobe = _light_terms(n_o, n_z, view, {lk.shininess for lk in looks})
     n_l = view.l_o.shape[-1]
-    diffuse, lobe = 0.0, {}
-    for j in range(n_l):
-        nl = n_o * view.l_o[..., j, None] + n_z * view.l_z[..., j, None]
-        nh = np.clip((nl + nv) / view.h_n[..., j, None], 0, None)
-        diffuse = diffuse + np.clip(nl, 0, None)
-        for m in {lk.shininess for lk in looks}:
-            lobe[m] = lobe.get(m, 0.0) + nh ** m
     seen = nv > 0
     F = np.stack([np.where(seen, (lk.face_albedo * diffuse + lk.specular * lobe[lk.shininess])
                            / n_l, 0.0) for lk in looks])
