@@ -70,29 +70,33 @@ def _pixel_format_option():
 
 def _budget_mm_option():
     """``--budget-tol-mm``: the measurement's own verdict (not the grasp's)."""
-    return typer.Option(1.0, "--budget-tol-mm", help="Refuse the measurement when its error "
+    return typer.Option(None, "--budget-tol-mm", help="Refuse the measurement when its error "
                         "budget's 3-sigma position at the grasp point (the pocket's centre) "
-                        "exceeds this (mm; the robot's 1 mm).")
+                        "exceeds this (mm; default the robot's 1 mm).")
 
 
 def _budget_deg_option():
-    return typer.Option(0.3, "--budget-tol-deg", help="Refuse the measurement when its error "
-                        "budget's 3-sigma rotation exceeds this (deg; 0.3: 1 mm at the pocket's "
-                        "ends, 200 mm from the origin; `experiment acceptance` shows what "
-                        "another value accepts on a measured set).")
+    return typer.Option(None, "--budget-tol-deg", help="Refuse the measurement when its error "
+                        "budget's 3-sigma rotation exceeds this (deg; default 0.3: 1 mm at the "
+                        "pocket's ends, 200 mm from the origin; `experiment acceptance` shows "
+                        "what another value accepts on a measured set).")
 
 
-def _budget_tolerance(position_mm: float, angle_deg: float):
-    """The error budget's :class:`~cutterpose.budget.Tolerance` from the two options."""
+def _budget_tolerance(position_mm: float | None, angle_deg: float | None):
+    """The error budget's :class:`~cutterpose.budget.Tolerance` with the options given."""
     import math
 
     from .budget import Tolerance
     from .errors import InputError
 
-    for name, v in (("--budget-tol-mm", position_mm), ("--budget-tol-deg", angle_deg)):
-        if not (math.isfinite(v) and v > 0):
-            raise InputError(f"{name} {v}: give a positive number")
-    return Tolerance(position_mm=float(position_mm), angle_deg=float(angle_deg))
+    given = {}
+    for key, name, v in (("position_mm", "--budget-tol-mm", position_mm),
+                         ("angle_deg", "--budget-tol-deg", angle_deg)):
+        if v is not None:
+            if not (math.isfinite(v) and v > 0):
+                raise InputError(f"{name} {v}: give a positive number")
+            given[key] = float(v)
+    return Tolerance(**given)
 
 
 def _edge_look_option():
@@ -616,10 +620,10 @@ def experiment_field_cmd(
 def experiment_acceptance_cmd(
     sets: list[str] = typer.Argument(..., help="NAME=RESULTS_DIR of `experiment images`."),
     method: str = typer.Option("dm+b", help="The method whose verdicts are re-applied."),
-    tolerances: str = typer.Option("0.2,0.25,0.3,0.35,0.4,0.45,0.5",
-                                   help="Angle tolerances to try (3 sigma, deg, comma-separated)."),
-    position_tol_mm: float = typer.Option(1.0, help="Position tolerance at the grasp point "
-                                          "(3 sigma, mm)."),
+    tolerances: str = typer.Option(None, help="Angle tolerances to try (3 sigma, deg, "
+                                   "comma-separated; default 0.2 to 0.5 in steps of 0.05)."),
+    position_tol_mm: float = typer.Option(None, help="Position tolerance at the grasp point "
+                                          "(3 sigma, mm; default the verdict's 1 mm)."),
     out: str = typer.Option("results/acceptance",
                             help="Output folder (acceptance.md, .json, .png)."),
 ):
@@ -629,16 +633,20 @@ def experiment_acceptance_cmd(
     from pathlib import Path
 
     from .errors import InputError
-    from .experiments.acceptance import write_acceptance
+    from .experiments.acceptance import DEFAULT_TOLERANCES_DEG, write_acceptance
 
     pairs = _named_folders(sets)
-    try:
-        tols = [float(x) for x in tolerances.split(",") if x.strip()]
-    except ValueError:
-        raise InputError(f"--tolerances {tolerances!r}: give degrees separated by commas") from None
-    if not tols or not all(t > 0 and math.isfinite(t) for t in tols):
-        raise InputError(f"--tolerances {tolerances!r}: give positive degrees")
-    write_acceptance(pairs, out, method, tols, position_tol_mm)
+    tols = DEFAULT_TOLERANCES_DEG
+    if tolerances is not None:
+        try:
+            tols = [float(x) for x in tolerances.split(",") if x.strip()]
+        except ValueError:
+            raise InputError(f"--tolerances {tolerances!r}: give degrees separated by "
+                             "commas") from None
+        if not tols or not all(t > 0 and math.isfinite(t) for t in tols):
+            raise InputError(f"--tolerances {tolerances!r}: give positive degrees")
+    write_acceptance(pairs, out, method, tols,
+                     _budget_tolerance(position_tol_mm, None).position_mm)
     typer.echo((Path(out) / "acceptance.md").read_text())
 
 

@@ -31,6 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..budget import Tolerance
 from ..errors import InputError
 from .field import BAD_ROT_DEG, BAD_TRANS_MM, _num, _read_budgets, _read_verdicts
 from .report import read_trials_csv
@@ -39,12 +40,14 @@ __all__ = ["acceptance_curve", "acceptance_markdown", "write_acceptance",
            "DEFAULT_TOLERANCES_DEG"]
 
 DEFAULT_TOLERANCES_DEG = (0.2, 0.25, 0.3, 0.35, 0.4, 0.45, 0.5)
+#: the verdict's own position tolerance (3 sigma at the grasp point, mm)
+POSITION_TOL_MM = Tolerance().position_mm
 #: the verdict's refusals that a tolerance decides (budget.ErrorBudget.reason)
 BUDGET_REASON = "error budget:"
 
 
 def acceptance_curve(folder, method: str = "dm+b", tolerances_deg=DEFAULT_TOLERANCES_DEG,
-                     position_mm: float = 1.0, name: str | None = None) -> dict:
+                     position_mm: float = POSITION_TOL_MM, name: str | None = None) -> dict:
     """The verdict re-applied at each angle tolerance (module doc) for one results folder.
 
     Returns
@@ -137,7 +140,7 @@ def plot_acceptance(curves: list[dict], path) -> None:
     a2.set(xlabel="angle tolerance, 3 sigma [deg]",
            ylabel="largest accepted rotation error [deg]")
     for ax in (a1, a2):
-        ax.axvline(0.3, color="grey", lw=0.8)
+        ax.axvline(Tolerance().angle_deg, color="grey", lw=0.8)   # the shipped line
         ax.grid(alpha=0.3)
     a1.legend(fontsize=8)
     fig.savefig(path, dpi=110)
@@ -145,7 +148,7 @@ def plot_acceptance(curves: list[dict], path) -> None:
 
 
 def write_acceptance(sets: dict, out, method: str = "dm+b",
-                     tolerances_deg=DEFAULT_TOLERANCES_DEG, position_mm: float = 1.0,
+                     tolerances_deg=DEFAULT_TOLERANCES_DEG, position_mm: float = POSITION_TOL_MM,
                      plot: bool = True) -> list[dict]:
     """``acceptance.md``, ``acceptance.json`` (and ``acceptance.png``) in ``out`` for
     ``{name: results folder}``."""
