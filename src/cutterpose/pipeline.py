@@ -72,6 +72,10 @@ __all__ = ["QualityLimits", "Quality", "Measurement", "measure", "measure_featur
            "band_budget", "band_verdict", "edge_break_effect", "UNKNOWN_EDGE_BREAK_MM",
            "fit_offset", "NOMINAL_DISTANCE_MM", "station_center_dof", "station_params"]
 
+#: the paper's measuring station: the camera 600 mm from the holder's top face
+NOMINAL_DISTANCE_MM = 600.0
+
+
 #: the pocket edge's break shapes a holder's drawing may give (QualityLimits.edge_shape)
 EDGE_SHAPES = ("round", "chamfer", "unknown")
 #: the shapes the band / radius fit tries for each of them
@@ -95,7 +99,7 @@ class QualityLimits:
     max_rms_px: float = 1.5            #: RMS corner residual (ideal px)
     max_corner_residual_px: float = 4.0
     max_ambiguity_ratio: float = 0.8   #: best / second-best candidate error
-    range_center_dof: tuple = (0.0, 0.0, 0.0, 0.0, 0.0, 600.0)
+    range_center_dof: tuple = (0.0, 0.0, 0.0, 0.0, 0.0, NOMINAL_DISTANCE_MM)
     range_half_width_dof: tuple = (10.0, 10.0, 10.0, 20.0, 20.0, 20.0)
     range_tolerance_dof: tuple = (2.0, 2.0, 2.0, 5.0, 5.0, 5.0)
     max_std_dof: tuple = (0.5, 0.5, 0.5, 2.0, 2.0, 2.0)
@@ -133,10 +137,6 @@ class QualityLimits:
         """The break the corner methods' budget carries (:attr:`edge_break_mm` or, not given,
         :data:`UNKNOWN_EDGE_BREAK_MM`)."""
         return UNKNOWN_EDGE_BREAK_MM if self.edge_break_mm is None else float(self.edge_break_mm)
-
-
-#: the paper's measuring station: the camera 600 mm from the holder's top face
-NOMINAL_DISTANCE_MM = 600.0
 
 
 def _distance(distance_mm) -> float:
