@@ -1,4 +1,4 @@
-"""Camera models: pinhole, HALCON-style division, OpenCV radial-tangential.
+"""Camera models: pinhole, HALCON division and polynomial, OpenCV radial-tangential.
 
 Convention:
     Camera frame x right, y down, z along the optical axis; pixel (0, 0) is the centre of the
@@ -17,8 +17,10 @@ Files:
 
 References:
     HALCON area-scan division model: ``u_u = u_d / (1 + kappa r_d^2)`` in metric image-plane
-    coordinates (seed paper, Table 1). OpenCV ``calib3d`` documentation for the
-    radial-tangential (Brown-Conrady) model.
+    coordinates (seed paper, Table 1; MVTec HALCON reference, chapter "Calibration": the same
+    equation, so :class:`DivisionCamera` is HALCON's ``area_scan_division``). HALCON
+    ``area_scan_polynomial``: :class:`PolynomialCamera`. OpenCV ``calib3d`` documentation for
+    the radial-tangential (Brown-Conrady) model.
 """
 
 from __future__ import annotations
@@ -32,7 +34,7 @@ import numpy as np
 from ..errors import CameraFileError, InputError
 
 __all__ = [
-    "Camera", "PinholeCamera", "DivisionCamera", "OpenCVCamera",
+    "Camera", "PinholeCamera", "DivisionCamera", "PolynomialCamera", "OpenCVCamera",
     "camera_from_dict", "default_camera",
 ]
 
@@ -301,23 +303,7 @@ class OpenCVCamera(Camera):
         return d
 
     def _distort_norm(self, x, y, jacobian: bool = False):
-        k1, k2, p1, p2, k3, k4, k5, k6 = self._coeffs()
-        r2 = x * x + y * y
-        num = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
-        den = 1 + r2 * (k4 + r2 * (k5 + r2 * k6))
-        radial = num / den
-        xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
-        yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
-        if not jacobian:
-            return xd, yd
-        dnum = k1 + r2 * (2 * k2 + 3 * k3 * r2)
-        dden = k4 + r2 * (2 * k5 + 3 * k6 * r2)
-        drad = (dnum * den - num * dden) / (den * den)  # d radial / d r2
-        j00 = radial + 2 * x * x * drad + 2 * p1 * y + 6 * p2 * x
-        j01 = 2 * x * y * drad + 2 * p1 * x + 2 * p2 * y
-        j10 = 2 * x * y * drad + 2 * p1 * x + 2 * p2 * y
-        j11 = radial + 2 * y * y * drad + 6 * p1 * y + 2 * p2 * x
-        return xd, yd, j00, j01, j10, j11
+        return _radial_tangential(x, y, self._coeffs(), jacobian)
 
     def _to_norm(self, px):
         K = self.camera_matrix
@@ -335,25 +321,144 @@ class OpenCVCamera(Camera):
 
     def undistort_px(self, observed_px, iterations: int = 50) -> np.ndarray:
         p = _as_points(observed_px, 2, "observed_px")
-        xd, yd = self._to_norm(p)
-        x, y = xd.copy(), yd.copy()
-        for _ in range(iterations):
-            fx_, fy_, a, b, c, d = self._distort_norm(x, y, jacobian=True)
-            rx, ry = fx_ - xd, fy_ - yd
-            det = a * d - b * c
-            dx = (d * rx - b * ry) / det
-            dy = (a * ry - c * rx) / det
-            x = x - dx
-            y = y - dy
-            step = np.nanmax(np.abs(np.concatenate([np.ravel(dx), np.ravel(dy)])), initial=0.0)
-            if step < 1e-15:
-                break
-        return self._to_px(x, y)
+        return self._to_px(*_invert_radial_tangential(*self._to_norm(p), self._coeffs(),
+                                                      iterations))
 
     def to_dict(self) -> dict:
         return {"name": self.name, "model": "opencv", "image_size_px": list(self.image_size_px),
                 "camera_matrix": self.camera_matrix.tolist(),
                 "distortion_coefficients": self.dist_coeffs.tolist()}
+
+
+def _radial_tangential(x, y, c, jacobian: bool = False):
+    """Brown-Conrady map ``(x, y) -> (x', y')`` with ``c = (k1, k2, p1, p2, k3, k4, k5, k6)``.
+
+    OpenCV applies it from ideal to distorted normalised coordinates; HALCON's
+    ``area_scan_polynomial`` applies the same polynomial from distorted to undistorted
+    coordinates (see :class:`PolynomialCamera`). With ``jacobian`` also returns the four
+    partial derivatives ``dx'/dx, dx'/dy, dy'/dx, dy'/dy``.
+    """
+    k1, k2, p1, p2, k3, k4, k5, k6 = c
+    r2 = x * x + y * y
+    num = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    den = 1 + r2 * (k4 + r2 * (k5 + r2 * k6))
+    radial = num / den
+    xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
+    yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+    if not jacobian:
+        return xd, yd
+    dnum = k1 + r2 * (2 * k2 + 3 * k3 * r2)
+    dden = k4 + r2 * (2 * k5 + 3 * k6 * r2)
+    drad = (dnum * den - num * dden) / (den * den)  # d radial / d r2
+    j00 = radial + 2 * x * x * drad + 2 * p1 * y + 6 * p2 * x
+    j01 = 2 * x * y * drad + 2 * p1 * x + 2 * p2 * y
+    j11 = radial + 2 * y * y * drad + 6 * p1 * y + 2 * p2 * x
+    return xd, yd, j00, j01, j01, j11
+
+
+def _invert_radial_tangential(xt, yt, c, iterations: int = 50):
+    """Solve ``_radial_tangential(x, y, c) = (xt, yt)`` by Newton's method with the analytic
+    Jacobian, started at ``(xt, yt)``, to machine precision (no closed form exists)."""
+    x, y = np.array(xt, float), np.array(yt, float)
+    for _ in range(iterations):
+        fx_, fy_, a, b, cc, d = _radial_tangential(x, y, c, jacobian=True)
+        rx, ry = fx_ - xt, fy_ - yt
+        det = a * d - b * cc
+        dx = (d * rx - b * ry) / det
+        dy = (a * ry - cc * rx) / det
+        x = x - dx
+        y = y - dy
+        step = np.nanmax(np.abs(np.concatenate([np.ravel(dx), np.ravel(dy)])), initial=0.0)
+        if step < 1e-15:
+            break
+    return x, y
+
+
+@dataclass(repr=False)
+class PolynomialCamera(Camera):
+    """HALCON ``area_scan_polynomial`` camera (radial K1, K2, K3 and decentering P1, P2).
+
+    With metric image-plane coordinates of an observed (distorted) pixel
+    ``u = (col - Cx) Sx``, ``v = (row - Cy) Sy`` and ``r^2 = u^2 + v^2``, HALCON's camera
+    model gives the undistorted coordinates ::
+
+        u_u = u + u (K1 r^2 + K2 r^4 + K3 r^6) + 2 P1 u v + P2 (r^2 + 2 u^2)
+        v_u = v + v (K1 r^2 + K2 r^4 + K3 r^6) + P1 (r^2 + 2 v^2) + 2 P2 u v
+
+    and an ideal pinhole of focal length ``f`` gives ``u_u = f X / Z``. Units: K1 [1/m^2],
+    K2 [1/m^4], K3 [1/m^6], P1, P2 [1/m], f, Sx, Sy [m], Cx, Cy [px]. The map runs from
+    distorted to undistorted (the reverse of OpenCV's, whose polynomial has the same form), so
+    :meth:`undistort_px` is closed-form and :meth:`distort_px` (projection) inverts it with
+    Newton's method. Both work in units of ``f`` (``K1 f^2``, ``K2 f^4``, ``K3 f^6``,
+    ``P1 f``, ``P2 f``), where the polynomial has the same coefficients' form.
+
+    References: MVTec HALCON reference manual, chapter "Calibration", camera parameters of
+    ``area_scan_polynomial``; D. C. Brown, "Decentering distortion of lenses", 1966.
+    """
+
+    focal_length_m: float
+    k1_per_m2: float
+    k2_per_m4: float
+    k3_per_m6: float
+    p1_per_m: float
+    p2_per_m: float
+    pixel_size_m: tuple[float, float]
+    principal_point_px: tuple[float, float]
+    image_size_px: tuple[int, int]
+    name: str = ""
+    model = "polynomial"
+
+    def __post_init__(self):
+        _check_positive_finite({"focal_length_m": self.focal_length_m}, "polynomial camera")
+        _check_finite({k: getattr(self, k) for k in self.coefficient_names},
+                      "polynomial camera")
+        sx, sy = _check_pair(self.pixel_size_m, "pixel_size_m", positive=True)
+        cx, cy = _check_pair(self.principal_point_px, "principal_point_px")
+        self.pixel_size_m = (sx, sy)
+        self.principal_point_px = (cx, cy)
+        self.image_size_px = check_image_size(self.image_size_px)
+
+    coefficient_names = ("k1_per_m2", "k2_per_m4", "k3_per_m6", "p1_per_m", "p2_per_m")
+
+    @property
+    def K(self) -> np.ndarray:
+        sx, sy = self.pixel_size_m
+        cx, cy = self.principal_point_px
+        f = self.focal_length_m
+        return np.array([[f / sx, 0.0, cx], [0.0, f / sy, cy], [0.0, 0.0, 1.0]])
+
+    def normalized_coefficients(self) -> np.ndarray:
+        """``(K1 f^2, K2 f^4, P1 f, P2 f, K3 f^6, 0, 0, 0)``: the polynomial in units of f,
+        in OpenCV's coefficient order."""
+        f = self.focal_length_m
+        return np.array([self.k1_per_m2 * f**2, self.k2_per_m4 * f**4, self.p1_per_m * f,
+                         self.p2_per_m * f, self.k3_per_m6 * f**6, 0.0, 0.0, 0.0])
+
+    def _to_norm(self, px):
+        (sx, sy), (cx, cy), f = self.pixel_size_m, self.principal_point_px, self.focal_length_m
+        return (px[..., 0] - cx) * sx / f, (px[..., 1] - cy) * sy / f
+
+    def _to_px(self, x, y):
+        (sx, sy), (cx, cy), f = self.pixel_size_m, self.principal_point_px, self.focal_length_m
+        return np.stack([x * f / sx + cx, y * f / sy + cy], axis=-1)
+
+    def undistort_px(self, observed_px) -> np.ndarray:
+        p = _as_points(observed_px, 2, "observed_px")
+        c = self.normalized_coefficients()
+        return self._to_px(*_radial_tangential(*self._to_norm(p), c))
+
+    def distort_px(self, ideal_px, iterations: int = 50) -> np.ndarray:
+        p = _as_points(ideal_px, 2, "ideal_px")
+        c = self.normalized_coefficients()
+        return self._to_px(*_invert_radial_tangential(*self._to_norm(p), c, iterations))
+
+    def to_dict(self) -> dict:
+        d = {"name": self.name, "model": "polynomial", "image_size_px": list(self.image_size_px),
+             "focal_length_m": self.focal_length_m}
+        d.update({k: getattr(self, k) for k in self.coefficient_names})
+        d.update({"pixel_size_m": list(self.pixel_size_m),
+                  "principal_point_px": list(self.principal_point_px)})
+        return d
 
 
 # ------------------------------------------------------------------------------------------
@@ -412,6 +517,8 @@ def camera_from_dict(d: dict, where: str = "camera") -> Camera:
 
     ``model`` is ``pinhole`` (either ``camera_matrix`` or ``focal_length_m`` + ``pixel_size_m`` +
     ``principal_point_px``), ``division`` (``focal_length_m``, ``kappa_per_m2``, ``pixel_size_m``,
+    ``principal_point_px``), ``polynomial`` (HALCON ``area_scan_polynomial``: ``focal_length_m``,
+    ``k1_per_m2``, ``k2_per_m4``, ``k3_per_m6``, ``p1_per_m``, ``p2_per_m``, ``pixel_size_m``,
     ``principal_point_px``) or ``opencv`` (``camera_matrix``, ``distortion_coefficients``).
     """
     if not isinstance(d, dict):
@@ -437,6 +544,12 @@ def camera_from_dict(d: dict, where: str = "camera") -> Camera:
             pixel_size_m=_require(d, "pixel_size_m", where),
             principal_point_px=_require(d, "principal_point_px", where),
             image_size_px=size, name=name)
+    if model == "polynomial":
+        coeffs = {k: _number(_require(d, k, where), k, where)
+                  for k in ("focal_length_m",) + PolynomialCamera.coefficient_names}
+        return PolynomialCamera(**coeffs, pixel_size_m=_require(d, "pixel_size_m", where),
+                                principal_point_px=_require(d, "principal_point_px", where),
+                                image_size_px=size, name=name)
     if model == "opencv":
         K = matrix_field(_require(d, "camera_matrix", where), "camera_matrix", where)
         dist = _require(d, "distortion_coefficients", where)
@@ -446,8 +559,8 @@ def camera_from_dict(d: dict, where: str = "camera") -> Camera:
             raise CameraFileError(
                 f"{where}: field 'distortion_coefficients' must be a list of numbers") from None
         return OpenCVCamera(K, dist, size, name=name)
-    raise CameraFileError(f"{where}: field 'model' must be 'pinhole', 'division' or 'opencv', "
-                          f"got {model!r}")
+    raise CameraFileError(f"{where}: field 'model' must be 'pinhole', 'division', 'polynomial' "
+                          f"or 'opencv', got {model!r}")
 
 
 def _number(v, field: str, where: str) -> float:

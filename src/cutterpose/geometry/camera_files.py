@@ -1,11 +1,14 @@
 """Camera files: reading and writing every format users have, and conversion between models.
 
 Formats:
-    ``halcon``  HALCON camera parameter file as written by ``write_cam_par`` for the
-                ``area_scan_division`` model (``.dat``/``.cal``): a ``ParGroup: Camera:
-                Parameter;`` block and, per parameter, three lines
+    ``halcon``  HALCON camera parameter file as written by ``write_cam_par`` (``.dat``/``.cal``)
+                for ``area_scan_division`` and ``area_scan_polynomial``: a ``ParGroup:
+                Camera: Parameter;`` block and, per parameter, three lines
                 ``Name:shortname: value;`` / ``TYPE:lower:upper;`` / ``"description";``
-                for Focus, Kappa, Sx, Sy, Cx, Cy, ImageWidth, ImageHeight; ``#`` starts a comment.
+                for Focus, Kappa (division) or Poly1..Poly5 = K1, K2, K3, P1, P2
+                (polynomial; the names K1..P2 are read too), Sx, Sy, Cx, Cy, ImageWidth,
+                ImageHeight; an optional ``Model`` statement names the model; ``#`` starts a
+                comment.
     ``ros``     ROS ``camera_info`` YAML (``camera_calibration_parsers``): ``image_width``,
                 ``image_height``, ``camera_name``, ``camera_matrix`` / ``distortion_coefficients``
                 / ``rectification_matrix`` / ``projection_matrix`` as ``{rows, cols, data}``,
@@ -15,16 +18,18 @@ Formats:
 
 Convention:
     HALCON's Focus [m], Kappa [1/m^2], Sx, Sy [m] and Cx, Cy [px] are exactly the fields of
-    :class:`cutterpose.geometry.camera.DivisionCamera` (HALCON's pixel coordinates, like ours, put
-    the
-    centre of the top-left pixel at (0, 0); Cx is the column). The conversion between the
-    division model and OpenCV's radial polynomial is not exact: it is fitted over the image
-    (see :func:`convert_camera`) and reported with its worst pixel error.
+    :class:`cutterpose.geometry.camera.DivisionCamera`, and Poly1..Poly5 (K1 [1/m^2],
+    K2 [1/m^4], K3 [1/m^6], P1, P2 [1/m]) those of
+    :class:`cutterpose.geometry.camera.PolynomialCamera` (HALCON's pixel coordinates, like
+    ours, put the centre of the top-left pixel at (0, 0); Cx is the column). The conversion
+    between the HALCON models and OpenCV's is not exact: it is fitted over the image (see
+    :func:`convert_camera`) and reported with its worst pixel error.
 
 References:
     MVTec HALCON reference manual, ``read_cam_par`` / ``write_cam_par`` (file syntax; versions
-    5.2-12 show the same division-model example). ROS ``sensor_msgs/CameraInfo`` and
-    ``camera_calibration_parsers`` (YAML layout).
+    5.2-12 show the same division-model example); Zivid's public
+    ``convert_intrinsics_opencv_to_halcon.py`` sample (a polynomial-model file, Poly1..Poly5).
+    ROS ``sensor_msgs/CameraInfo`` and ``camera_calibration_parsers`` (YAML layout).
 """
 
 from __future__ import annotations
@@ -42,6 +47,7 @@ from .camera import (
     DivisionCamera,
     OpenCVCamera,
     PinholeCamera,
+    PolynomialCamera,
     camera_from_dict,
     check_image_size,
     matrix_field,
@@ -109,6 +115,11 @@ def sniff_format(path, for_writing: bool = False) -> str | None:
 _HALCON_DOC = {
     "Focus": ("foc", "DOUBLE:0.0:", "Focal length of the lens [meter]"),
     "Kappa": ("kappa", "DOUBLE::", "Radial distortion coefficient [1/(meter*meter)]"),
+    "Poly1": ("poly1", "DOUBLE::", "1st polynomial distortion coefficient (K1) [1/(meter^2)]"),
+    "Poly2": ("poly2", "DOUBLE::", "2nd polynomial distortion coefficient (K2) [1/(meter^4)]"),
+    "Poly3": ("poly3", "DOUBLE::", "3rd polynomial distortion coefficient (K3) [1/(meter^6)]"),
+    "Poly4": ("poly4", "DOUBLE::", "4th polynomial distortion coefficient (P1) [1/meter]"),
+    "Poly5": ("poly5", "DOUBLE::", "5th polynomial distortion coefficient (P2) [1/meter]"),
     "Sx": ("sx", "DOUBLE:0.0:", "Width of a cell on the sensor [meter]"),
     "Sy": ("sy", "DOUBLE:0.0:", "Height of a cell on the sensor [meter]"),
     "Cx": ("cx", "DOUBLE::", "X-coordinate of the image center [pixel]"),
@@ -116,18 +127,13 @@ _HALCON_DOC = {
     "ImageWidth": ("imgw", "INT:1:32767", "Width of the images [pixel]"),
     "ImageHeight": ("imgh", "INT:1:32767", "Height of the images [pixel]"),
 }
+_HALCON_COMMON = ("Sx", "Sy", "Cx", "Cy", "ImageWidth", "ImageHeight")
+_HALCON_POLY = ("Poly1", "Poly2", "Poly3", "Poly4", "Poly5")
+#: the parameter names of newer HALCON versions, read as the Poly1..Poly5 they stand for
+_HALCON_ALIASES = {"K1": "Poly1", "K2": "Poly2", "K3": "Poly3", "P1": "Poly4", "P2": "Poly5"}
 
 
-def read_halcon(path) -> DivisionCamera:
-    """Read a HALCON ``area_scan_division`` camera parameter file.
-
-    Raises
-    ------
-    CameraFileError
-        Missing parameter, a polynomial/telecentric/line-scan model, or a malformed value; the
-        message names the parameter.
-    """
-    path = Path(path)
+def _halcon_statements(path: Path) -> dict[str, str]:
     try:
         text = path.read_text()
     except (OSError, UnicodeDecodeError) as e:
@@ -141,16 +147,31 @@ def read_halcon(path) -> DivisionCamera:
     for stmt in body.split(";"):
         m = re.match(r"\s*([A-Za-z][A-Za-z0-9]*)\s*:\s*([A-Za-z0-9_]*)\s*:\s*(\S+)\s*$", stmt)
         if m and m.group(1) not in ("ParGroup",):
-            values[m.group(1)] = m.group(3)
-    if "Poly1" in values:
-        raise CameraFileError(f"{path}: HALCON area_scan_polynomial model; only the division "
-                              "model (Kappa) is supported")
+            values[_HALCON_ALIASES.get(m.group(1), m.group(1))] = m.group(3)
+    return values
+
+
+def read_halcon(path) -> DivisionCamera | PolynomialCamera:
+    """Read a HALCON camera parameter file: ``area_scan_division`` (Kappa) or
+    ``area_scan_polynomial`` (Poly1..Poly5, or K1, K2, K3, P1, P2).
+
+    Raises
+    ------
+    CameraFileError
+        Missing parameter, a telecentric/tilt/line-scan model, or a malformed value; the
+        message names the parameter.
+    """
+    path = Path(path)
+    values = _halcon_statements(path)
+    poly = "Poly1" in values
     model = values.get("Model")
-    if model is not None and model.strip("'\"") not in ("area_scan_division",):
+    wanted = "area_scan_polynomial" if poly else "area_scan_division"
+    if model is not None and model.strip("'\"") != wanted:
         raise CameraFileError(f"{path}: HALCON model '{model}' is not supported "
-                              "(only area_scan_division)")
+                              "(area_scan_division or area_scan_polynomial)")
+    keys = ("Focus",) + (_HALCON_POLY if poly else ("Kappa",)) + _HALCON_COMMON
     out = {}
-    for key in _HALCON_DOC:
+    for key in keys:
         if key not in values:
             raise CameraFileError(f"{path}: missing HALCON parameter '{key}'")
         try:
@@ -160,29 +181,36 @@ def read_halcon(path) -> DivisionCamera:
                                   f"{values[key]!r}") from None
     if out["Focus"] == 0:
         raise CameraFileError(f"{path}: Focus = 0 is a telecentric camera (not supported)")
-    return DivisionCamera(
-        focal_length_m=out["Focus"], kappa_per_m2=out["Kappa"],
-        pixel_size_m=(out["Sx"], out["Sy"]), principal_point_px=(out["Cx"], out["Cy"]),
-        image_size_px=(out["ImageWidth"], out["ImageHeight"]), name=path.stem)
+    common = {"pixel_size_m": (out["Sx"], out["Sy"]),
+              "principal_point_px": (out["Cx"], out["Cy"]),
+              "image_size_px": (out["ImageWidth"], out["ImageHeight"]), "name": path.stem}
+    if poly:
+        return PolynomialCamera(out["Focus"], *(out[k] for k in _HALCON_POLY), **common)
+    return DivisionCamera(focal_length_m=out["Focus"], kappa_per_m2=out["Kappa"], **common)
 
 
 def write_halcon(cam: Camera, path) -> None:
-    """Write a division (or pinhole) camera as a HALCON ``write_cam_par`` file."""
-    if not isinstance(cam, DivisionCamera):
-        if isinstance(cam, PinholeCamera) and cam.skew == 0:
-            cam = to_division(cam).camera
-        else:
-            raise CameraFileError(
-                f"HALCON files hold the division model; convert the {cam.model} camera first "
-                "(cutterpose camera convert)")
+    """Write a division, polynomial (or skew-free pinhole) camera as a HALCON
+    ``write_cam_par`` file (the polynomial model with HALCON's Poly1..Poly5 names)."""
+    if isinstance(cam, PinholeCamera) and cam.skew == 0:
+        cam = to_division(cam).camera
+    if not isinstance(cam, (DivisionCamera, PolynomialCamera)):
+        raise CameraFileError(
+            f"HALCON files hold the division or polynomial model; convert the {cam.model} "
+            "camera first (cutterpose camera convert)")
     sx, sy = cam.pixel_size_m
     cx, cy = cam.principal_point_px
-    vals = {"Focus": cam.focal_length_m, "Kappa": cam.kappa_per_m2, "Sx": sx, "Sy": sy,
-            "Cx": cx, "Cy": cy, "ImageWidth": cam.image_size_px[0],
-            "ImageHeight": cam.image_size_px[1]}
+    vals = {"Focus": cam.focal_length_m, "Sx": sx, "Sy": sy, "Cx": cx, "Cy": cy,
+            "ImageWidth": cam.image_size_px[0], "ImageHeight": cam.image_size_px[1]}
+    if isinstance(cam, PolynomialCamera):
+        vals.update(zip(_HALCON_POLY, (getattr(cam, k) for k in cam.coefficient_names)))
+    else:
+        vals["Kappa"] = cam.kappa_per_m2
     lines = ["# INTERNAL CAMERA PARAMETERS", "", "ParGroup: Camera: Parameter;",
              '\t"Internal camera parameters";', ""]
     for key, (short, typ, desc) in _HALCON_DOC.items():
+        if key not in vals:
+            continue
         v = vals[key]
         sval = str(int(v)) if typ.startswith("INT") else repr(float(v))
         lines += [f"{key}:{short}:\t{sval};", f"\t{typ};", f'\t"{desc}";', ""]
@@ -242,9 +270,9 @@ def write_ros(cam: Camera, path) -> None:
     """Write a pinhole or OpenCV camera as ROS ``camera_info`` YAML."""
     import yaml
 
-    if isinstance(cam, DivisionCamera):
-        raise CameraFileError("ROS camera_info cannot hold the division model; convert it to "
-                              "the opencv model first (cutterpose camera convert)")
+    if isinstance(cam, (DivisionCamera, PolynomialCamera)):
+        raise CameraFileError(f"ROS camera_info cannot hold the {cam.model} model; convert it "
+                              "to the opencv model first (cutterpose camera convert)")
     K = cam.K
     dist = cam.dist_coeffs if isinstance(cam, OpenCVCamera) else np.zeros(5)
     dist = np.asarray(dist, float).ravel()
@@ -356,13 +384,17 @@ def to_opencv(cam: Camera) -> Conversion:
 
     def build(x):
         Kx = np.array([[f[0], 0, K[0, 2]], [0, f[1], K[1, 2]], [0, 0, 1.0]])
-        return OpenCVCamera(Kx, np.array([x[0], x[1], 0.0, 0.0, x[2]]), cam.image_size_px,
+        p = (x[3], x[4]) if len(x) == 5 else (0.0, 0.0)  # tangential terms when the source has
+        return OpenCVCamera(Kx, np.array([x[0], x[1], *p, x[2]]), cam.image_size_px,
                             name=cam.name)
 
     if isinstance(cam, DivisionCamera):
         # series start: r_d = r_u (1 + k r_u^2 + 2 k^2 r_u^4 + 5 k^3 r_u^6) in normalised units
         k = cam.kappa_per_m2 * cam.focal_length_m**2
         x0 = np.array([k, 2 * k * k, 5 * k**3])
+    elif isinstance(cam, PolynomialCamera):  # first-order inverse of its radial series
+        c = cam.normalized_coefficients()
+        x0 = np.array([-c[0], 3 * c[0] ** 2 - c[1], 0.0, -c[2], -c[3]])
     else:
         x0 = np.zeros(3)
     return _fit(cam, build, x0)
@@ -406,13 +438,16 @@ def convert_camera(cam: Camera, target_format: str,
                    pixel_height_m: float | None = None) -> Conversion:
     """Convert ``cam`` to a model that ``target_format`` can hold.
 
-    ``json`` holds every model (exact); ``halcon`` needs the division model; ``opencv`` and
+    ``json`` holds every model (exact); ``halcon`` holds the division and polynomial models
+    (anything else becomes a division camera); ``opencv`` and
     ``ros`` need a pinhole or OpenCV camera. Division <-> radial polynomial is fitted (not
     exact) and the returned :class:`Conversion` gives the worst pixel error over the image.
     """
     if target_format == "json":
         return Conversion(cam, True)
     if target_format == "halcon":
+        if isinstance(cam, PolynomialCamera) and pixel_height_m is None:
+            return Conversion(cam, True)
         return to_division(cam, pixel_height_m)
     if target_format in ("opencv", "ros"):
         if isinstance(cam, (PinholeCamera, OpenCVCamera)):
@@ -457,9 +492,9 @@ def _read_opencv_yaml(path: Path) -> Camera:
 def _write_opencv_yaml(cam: Camera, path: Path) -> None:
     import cv2
 
-    if isinstance(cam, DivisionCamera):
+    if isinstance(cam, (DivisionCamera, PolynomialCamera)):
         raise CameraFileError(
-            "OpenCV YAML cannot hold the division model exactly; convert it to the opencv "
+            f"OpenCV YAML cannot hold the {cam.model} model exactly; convert it to the opencv "
             "model first (cutterpose camera convert)")
     fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
     fs.write("image_width", int(cam.image_size_px[0]))
