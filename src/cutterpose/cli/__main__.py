@@ -1,0 +1,5 @@
+"""``python -m cutterpose.cli``."""
+
+from . import main
+
+main()

@@ -1,0 +1,190 @@
+"""Camera calibration: ``calibrate`` and ``render-plate``."""
+
+from __future__ import annotations
+
+import typer
+
+from .app import (
+    angle_unit_option,
+    app,
+    camera_from_option,
+    convention_option,
+    friendly,
+    image_paths,
+    length_unit_option,
+    log,
+)
+
+
+def _plate_from_options(plate_file: str | None, grid: str | None, spacing_mm: float | None,
+                        diameter_mm: float | None):
+    """The plate from ``--plate plate.json`` or from ``--grid RxC --spacing-mm S``."""
+    from ..calibration.plate import CirclePlate, load_plate
+    from ..errors import InputError
+
+    if plate_file is not None:
+        if grid is not None or spacing_mm is not None:
+            raise InputError("give either --plate or --grid/--spacing-mm, not both")
+        return load_plate(plate_file)
+    if grid is None and spacing_mm is None:
+        return CirclePlate()
+    try:
+        rows, cols = (int(v) for v in (grid or "7x7").lower().split("x"))
+    except ValueError:
+        raise InputError(f"--grid must look like 7x7, got {grid!r}") from None
+    s = 30.0 if spacing_mm is None else float(spacing_mm)
+    d = 0.5 * s if diameter_mm is None else float(diameter_mm)
+    return CirclePlate(rows=rows, cols=cols, spacing_mm=s, diameter_mm=d)
+
+
+@app.command("render-plate")
+@friendly
+def render_plate_cmd(
+    out: str = typer.Option(..., "--out", help="Output folder (images, plate.json, truth.json)."),
+    count: int = typer.Option(15, min=1, help="Number of plate images."),
+    camera: str = typer.Option(None, help="table1 (default), synthetic, or a camera file."),
+    seed: int = typer.Option(0, help="Seed of the poses and the sensor noise."),
+    preset: str = typer.Option("easy", help="Sensor/blur preset of the holder renderer "
+                               "(easy, dim, blurred, ...)."),
+    grid: str = typer.Option("7x7", help="Circle grid, rows x cols."),
+    spacing_mm: float = typer.Option(30.0, help="Circle spacing in mm."),
+    diameter_mm: float = typer.Option(15.0, help="Circle diameter in mm."),
+    distance_mm: str = typer.Option("400,700", help="Range of plate distances in mm."),
+    robot_cell: bool = typer.Option(False, "--robot-cell", help="Hand-eye mode: a simulated "
+                                    "robot cell (random camera mount, fixed plate) moves the "
+                                    "camera through COUNT stations; writes robot_poses.csv "
+                                    "(reported flange poses) and cell_truth.json."),
+    repeatability_mm: float = typer.Option(0.03, help="--robot-cell: robot position noise, "
+                                           "mm per axis (1 sigma)."),
+    repeatability_deg: float = typer.Option(0.005, help="--robot-cell: robot rotation noise, "
+                                            "deg per axis (1 sigma)."),
+    plate_poses: str = typer.Option(None, "--plate-poses", help="Render one image per pose "
+                                    "of this pose file (T_cam_plate, any convention of "
+                                    "`cutterpose.robot.poses`) instead of drawing poses."),
+    convention: str = convention_option("a --plate-poses file"),
+    length_unit: str = length_unit_option("a --plate-poses file"),
+    angle_unit: str = angle_unit_option("a --plate-poses file"),
+):
+    """Render images of the circle calibration plate at poses that cover the field, at given
+    poses (--plate-poses), or from the stations of a simulated robot cell (--robot-cell)."""
+    import json
+    from pathlib import Path
+
+    import cv2
+    import numpy as np
+
+    from ..calibration.plate import render_plate, sample_plate_poses, save_plate
+    from ..errors import InputError
+    from ..render.analytic import preset as get_preset
+
+    plate = _plate_from_options(None, grid, spacing_mm, diameter_mm)
+    settings = get_preset(preset)
+    try:
+        dist = tuple(float(v) for v in distance_mm.split(","))
+        assert len(dist) == 2 and 0 < dist[0] <= dist[1]
+    except (ValueError, AssertionError):
+        raise InputError(f"--distance-mm must be MIN,MAX in mm, got {distance_mm!r}") from None
+    cam = camera_from_option(camera)
+    folder = Path(out)
+    folder.mkdir(parents=True, exist_ok=True)
+    if robot_cell:
+        from ..robot.cell import RobotCell
+
+        if plate_poses:
+            raise InputError("give either --robot-cell or --plate-poses, not both")
+        cell = RobotCell.random(cam, seed, repeatability_mm=repeatability_mm,
+                                repeatability_deg=repeatability_deg)
+        cell.plate = plate
+        cell.write_handeye_set(folder, count, seed, settings,
+                               progress=lambda k, n: log(f"station {k}/{n}"))
+        typer.echo(f"wrote {count} plate images, robot_poses.csv, plate.json, camera.json and "
+                   f"cell_truth.json to {folder}")
+        return
+    if plate_poses:
+        from ..robot.poses import read_poses
+
+        poses = read_poses(plate_poses, convention, length_unit, angle_unit, "cam", "plate")
+        count = len(poses)
+    else:
+        poses = sample_plate_poses(cam, count, plate, distance_mm=dist, seed=seed)
+    rng = np.random.default_rng(seed)
+    images = []
+    for k, pose in enumerate(poses):
+        name = f"plate_{k:04d}.png"
+        cv2.imwrite(str(folder / name), render_plate(cam, pose, plate, settings=settings,
+                                                     rng=rng))
+        centres = cam.project(pose.apply(plate.points_mm))
+        images.append({"file": name, "R_cam_plate": pose.R.tolist(),
+                       "t_cam_plate_mm": pose.t_mm.tolist(), "centers_px": centres.tolist()})
+        log(f"{name}: plate at {np.linalg.norm(pose.t_mm):.0f} mm")
+    save_plate(plate, folder / "plate.json")
+    truth = {"camera": cam.to_dict(), "plate": plate.to_dict(), "preset": settings.name,
+             "images": images}
+    (folder / "truth.json").write_text(json.dumps(truth, indent=1) + "\n")
+    typer.echo(f"wrote {count} images, plate.json and truth.json to {folder}")
+
+
+@app.command("calibrate")
+@friendly
+def calibrate_cmd(
+    images: list[str] = typer.Argument(..., help="Plate images (files or folders)."),
+    out: str = typer.Option(..., "--out", help="Camera file to write (.json, .yml, .dat, "
+                            ".ros.yaml)."),
+    plate_file: str = typer.Option(None, "--plate", help="plate.json (from render-plate)."),
+    grid: str = typer.Option(None, help="Circle grid rows x cols, e.g. 7x7 (without --plate)."),
+    spacing_mm: float = typer.Option(None, help="Circle spacing in mm (without --plate)."),
+    diameter_mm: float = typer.Option(None, help="Circle diameter in mm (default: spacing/2)."),
+    model: str = typer.Option("division", help="division (HALCON, our least squares) or "
+                              "opencv (cv2.calibrateCamera)."),
+    pixel_height_um: float = typer.Option(3.45, help="Fixed pixel height Sy of the division "
+                                          "model, from the sensor's datasheet."),
+    bias_rounds: int = typer.Option(2, min=0, help="Rounds of the ellipse-centre bias "
+                                    "correction (0: plain ellipse centres)."),
+    report: str = typer.Option(None, help="Report JSON (default: <out stem>.report.json)."),
+    json_out: bool = typer.Option(False, "--json", help="Print the report as JSON."),
+):
+    """Calibrate a camera from images of the circle plate (Zhang + Levenberg-Marquardt)."""
+    import json
+    from pathlib import Path
+
+    from ..calibration.intrinsics import calibrate_images
+    from ..geometry.camera_files import convert_camera, detect_format, write_camera
+
+    plate = _plate_from_options(plate_file, grid, spacing_mm, diameter_mm)
+    paths = image_paths(images)
+    fmt = detect_format(out, for_writing=True)
+
+    def progress(name, reason):
+        if reason:
+            log(f"warning: {name} skipped: {reason}")
+
+    res = calibrate_images(paths, plate, model=model, pixel_height_m=pixel_height_um * 1e-6,
+                           bias_rounds=bias_rounds, progress=progress)
+    conv = convert_camera(res.camera, fmt, pixel_height_um * 1e-6)
+    write_camera(conv.camera, out, fmt)
+    rep = res.to_dict()
+    rep["written"] = {"file": str(out), "format": fmt, "exact": conv.exact,
+                      "max_conversion_error_px": conv.max_error_px}
+    rep_path = Path(report) if report else Path(out).with_name(Path(out).stem + ".report.json")
+    rep_path.write_text(json.dumps(rep, indent=1, default=float) + "\n")
+    if json_out:
+        typer.echo(json.dumps(rep, indent=1, default=float))
+        return
+    cam = res.camera.to_dict()
+    typer.echo(f"model: {res.camera.model}; {len(res.used)} images used, "
+               f"{len(res.skipped)} skipped")
+    for k, v in cam.items():
+        if k not in ("name", "model"):
+            typer.echo(f"  {k}: {v}")
+    typer.echo("standard deviations:")
+    for k, v in res.std.items():
+        typer.echo(f"  {k}: {v:.4g}")
+    typer.echo(f"RMS reprojection error: {res.rms_px:.4f} px")
+    for n, e in zip(res.used, res.per_image_rms_px):
+        typer.echo(f"  {n}: {e:.4f} px")
+    for n, why in res.skipped.items():
+        typer.echo(f"  {n}: skipped ({why})")
+    if not conv.exact:
+        typer.echo(f"note: {fmt} cannot hold the {res.camera.model} model; wrote the nearest "
+                   f"{conv.camera.model} camera (worst pixel error {conv.max_error_px:.4f} px)")
+    typer.echo(f"wrote {out} and {rep_path}")

@@ -1,0 +1,130 @@
+"""Calibrating the edge look in the cell: ``calibrate-edge-look``."""
+
+from __future__ import annotations
+
+import typer
+
+from .app import (
+    angle_unit_option,
+    app,
+    camera_from_option,
+    convention_option,
+    fail,
+    friendly,
+    image_paths,
+    length_unit_option,
+    log,
+)
+
+
+@app.command("calibrate-edge-look")
+@friendly
+def calibrate_edge_look_cmd(
+    source: list[str] = typer.Argument(..., help="Rendered sets (folders with truth.json; "
+                                       "several are pooled, e.g. poses near and far), or "
+                                       "images of the reference holder (files or folders) "
+                                       "with --poses."),
+    out: str = typer.Option(..., "--out", help="Edge look file to write (JSON)."),
+    poses: str = typer.Option(None, "--poses", help="T_cam_holder of each image, in order: a "
+                              "pose file (CSV or JSON, cutterpose.robot.poses conventions)."),
+    camera: str = typer.Option(None, help="table1 (default), synthetic, or a camera file "
+                               "(with --poses)."),
+    holder: str = typer.Option(None, help="Holder JSON file (with --poses; default: bundled)."),
+    convention: str = convention_option("a --poses file"),
+    length_unit: str = length_unit_option("a --poses file"),
+    angle_unit: str = angle_unit_option("a --poses file"),
+    edge_shape: str = typer.Option("unknown", help="The reference holder's break: round, "
+                                   "chamfer, or unknown (chosen per image by cost); with a "
+                                   "rendered set, 'truth' takes each image's from truth.json."),
+    limit: int = typer.Option(None, help="Only the first N images of each set."),
+    workers: int = typer.Option(1, min=1, help="Processes that evaluate the look's cost (the "
+                                "result does not change; ~1.8x faster with 2)."),
+    offsets: bool = typer.Option(True, "--offsets/--no-offsets", help="Also calibrate, per "
+                                 "shape, the design-edge offset the look still leaves at the "
+                                 "known poses."),
+    json_out: bool = typer.Option(False, "--json", help="Print the file's content as JSON."),
+):
+    """Calibrate dm+b's edge look on a reference holder at known poses (docs/notes/edge_band.md):
+    the look's photometry fitted so that the measured band profiles put the design edge where
+    the known pose does; then the design-edge shift at the known poses, generic vs calibrated."""
+    import json
+    from pathlib import Path
+
+    from ..calibration.edge_look import (
+        calibrate_edge_look,
+        calibrate_offsets,
+        load_reference_images,
+        load_reference_set,
+        save_edge_look,
+        shift_at_truth,
+    )
+    from ..errors import InputError
+
+    if edge_shape not in ("unknown", "round", "chamfer", "truth"):
+        fail(f"--edge-shape must be round, chamfer, unknown or truth, got {edge_shape!r}")
+    shape = edge_shape if edge_shape in ("round", "chamfer") else None
+    if poses is None:
+        missing = [s for s in source if not (Path(s) / "truth.json").is_file()]
+        if missing:
+            raise InputError(f"{missing[0]}: not a rendered set (no truth.json); give rendered "
+                             "sets, or images and --poses")
+        refs = [r for s in source
+                for r in load_reference_set(s, limit=limit, use_shape=edge_shape == "truth")]
+        if shape is not None:
+            for r in refs:
+                r.shape = shape
+    else:
+        from ..geometry.holder import default_holder, load_holder
+        from ..robot.poses import read_poses
+
+        if edge_shape == "truth":
+            fail("--edge-shape truth needs a rendered set")
+        ps = read_poses(poses, convention, length_unit, angle_unit, to_frame="cam",
+                        from_frame="holder")
+        refs = load_reference_images(image_paths(source)[:limit], ps[:limit] if limit else ps,
+                                     camera_from_option(camera),
+                                     load_holder(holder) if holder else default_holder(), shape)
+    log(f"{len(refs)} reference images; fitting the look with the design edge at the known "
+        "poses")
+    from rich.progress import Progress
+
+    with Progress(transient=True, console=None) as bar:
+        task = bar.add_task("fitting the look", total=None)
+
+        def tick(k, n, n_max):
+            bar.update(task, description=f"fitting the look, round {k}", completed=n,
+                       total=n_max)
+
+        cal = calibrate_edge_look(refs, progress=log, tick=tick, workers=workers)
+    if offsets:
+        log("the design-edge offset per shape at the known poses")
+        cal = calibrate_offsets(refs, cal)
+    log("checking: the design-edge shift at the known poses, generic and calibrated looks")
+    check = {"generic": shift_at_truth(refs), "calibrated": shift_at_truth(refs,
+                                                                            cal.band_looks())}
+    cal.report["shift_at_truth"] = check
+    save_edge_look(cal, out)
+    if json_out:
+        typer.echo(json.dumps(cal.to_dict(), indent=1))
+        return
+    lk, sd = cal.look, cal.sd()
+    typer.echo(f"calibrated look on {cal.report['images']} images, {cal.report['segments']} "
+               "segments:")
+    for k in ("specular", "shininess", "wall_albedo", "pocket_level"):
+        typer.echo(f"  {k}: {getattr(lk, k):.4g} +- {sd[k]:.2g}")
+    typer.echo(f"  residual cost: {cal.report['cost_ratio_to_start']:.3f} of the nominal look's "
+               "(shift 0)")
+    offs = cal.offsets
+    depth = dict(offs.depth_mm)
+    for shape, o in offs.offset_mm:
+        sd_o, sd_d = offs.sd(shape)
+        d = (f", depth {depth[shape]:+.3f} +- {sd_d:.3f} mm below the face"
+             if shape in depth else "")
+        typer.echo(f"  design-edge offset ({shape}): {o:+.4f} +- {sd_o:.4f} mm{d}")
+    for name, c in check.items():
+        typer.echo(f"  {name} look at the known poses: design-edge shift {c['mean_px']:+.3f} px "
+                   f"({c['mean_mm']:+.4f} mm), sd of image means {c['sd_of_image_means_px']:.3f}"
+                   f" px, segment sd {c['segment_sd_px']:.3f} px; Z error of the pose fitted "
+                   f"from the known pose {c['z_error_mean_mm']:+.3f} +- "
+                   f"{c['z_error_sd_mm'] or 0.0:.3f} mm")
+    typer.echo(f"wrote {out}")
