@@ -24,6 +24,7 @@ from cutterpose.methods import get_method
 from cutterpose.pipeline import QualityLimits, measure, measure_features
 from cutterpose.render.analytic import PRESETS, render_holder
 from cutterpose.solvers.edge_radius import RadiusPrior, crlb_pose_radius, fit_pose_radius
+from test_budget import mc_figures
 from test_features import SCALE, small_camera
 
 HOLDER = default_holder()
@@ -166,7 +167,12 @@ def test_budget_in_json_covariance_and_grasp_point():
     far = measure_features(f, cam, HOLDER, "dm+r",
                            QualityLimits(tolerance=SMALL.tolerance,
                                          grasp_point_mm=(300.0, 0.0, 0.0)))
-    assert far.quality.budget.position_3sigma_mm > m.quality.budget.position_3sigma_mm
+    bf = far.quality.budget
+    assert bf.position_3sigma_mm > m.quality.budget.position_3sigma_mm
+    # ... by exactly the spread of that point under the stated covariance (Monte Carlo)
+    pos, ang, _ = mc_figures(far.pose.dof, bf.dof_cov, (300.0, 0.0, 0.0), n=100_000)
+    assert bf.position_3sigma_mm == pytest.approx(pos, rel=0.015)
+    assert bf.angle_3sigma_deg == pytest.approx(ang, rel=0.015)
 
 
 def test_verdict_refuses_over_budget_with_the_reason():

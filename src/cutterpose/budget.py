@@ -167,6 +167,8 @@ def dof_to_cam_jacobian(dof) -> np.ndarray:
 
 
 def _figures(cov_cam: np.ndarray, R: np.ndarray, p: np.ndarray, k: float):
+    if not np.all(np.isfinite(cov_cam)):  # a singular fit's part: refuse, not a LinAlgError
+        return math.inf, math.inf
     px = np.array([[0, -p[2], p[1]], [p[2], 0, -p[0]], [-p[1], p[0], 0]])
     A = np.hstack([np.eye(3), -R @ px])
     Cp = A @ cov_cam @ A.T
@@ -184,11 +186,10 @@ def budget_from_dof_cov(parts: dict, dof, grasp_point_mm=None, tol: Tolerance = 
     total = sum(parts.values()) if parts else np.zeros((6, 6))
     A = dof_to_cam_jacobian(dof)
     R = rotation_from_euler_deg(*dof[:3])
-    cam = A @ total @ A.T
-    per = {k: _figures(A @ c @ A.T, R, p, tol.k_sigma) for k, c in parts.items()}
+    with np.errstate(invalid="ignore"):  # inf * 0 in a non-finite part: NaN, refused below
+        cam = A @ total @ A.T
+        per = {k: _figures(A @ c @ A.T, R, p, tol.k_sigma) for k, c in parts.items()}
     pos, ang = _figures(cam, R, p, tol.k_sigma)
-    if not np.all(np.isfinite(total)):
-        pos = ang = math.inf
     return ErrorBudget(parts, total, cam, p, pos, ang, radius_mm, radius_std_mm, per)
 
 
