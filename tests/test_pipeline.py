@@ -87,24 +87,58 @@ def test_demo_prints_pose_truth_error_and_writes_overlay(tmp_path):
     assert (tmp_path / "demo.json").is_file()
 
 
-def test_worn_edges_never_give_a_tight_biased_pose():
-    """A worn edge darkens the face towards the pocket: the edges come out too far outwards
-    and Z too short, which the residuals do not show. The wear's possible pose shift must be
-    in the std (or the pose refused with the reason), never a tight std on a biased pose."""
+WORN_TRUE = Pose.from_euler(3, -4, 5, 10, -8, 610)
+
+
+@pytest.fixture(scope="module")
+def worn():
+    """A worn edge darkens the face towards the pocket: the edges come out too far outwards and
+    Z too short (here by 1.2 mm), which the residuals do not show."""
     cam = small_camera(0.5)  # at 1/4 the worn band is within the edge's blur
-    pose = Pose.from_euler(3, -4, 5, 10, -8, 610)
-    r = render_holder(pose, cam, default_holder(), "worn", seed=1)
+    r = render_holder(WORN_TRUE, cam, default_holder(), "worn", seed=1)
+    return cam, r.image
+
+
+def _measure_worn(worn, tolerance=Tolerance()):
+    cam, image = worn
     # the analytic "worn" edge is a darkened band on a sharp edge: the wear indicator's part
-    m = measure(r.image, cam, default_holder(), "dm+", limits=QualityLimits(edge_break_mm=0.0))
-    f = m.features
-    assert np.nanmedian(np.abs(f.edge_darkening)) > 0.15
-    assert m.pose is not None
-    err = np.abs(m.pose.dof - pose.dof)
-    assert m.quality.edge_bias_dof is not None and m.quality.edge_bias_dof[5] > 0
-    if m.ok:
-        assert np.all(err[3:] < 3 * m.std_dof[3:] + 0.05)
-    else:
-        assert "budget" in m.quality.reason or "corner" in m.quality.reason
+    m = measure(image, cam, default_holder(), "dm+",
+                limits=QualityLimits(edge_break_mm=0.0, tolerance=tolerance))
+    assert np.nanmedian(np.abs(m.features.edge_darkening)) > 0.15
+    assert m.pose is not None and m.quality.budget is not None
+    return m
+
+
+def test_worn_edges_pose_shift_is_in_the_budget(worn):
+    """The wear's possible pose shift is in the std and the budget, whatever the verdict: the
+    actual error is within 3 sigma per DOF and within the 3-sigma position figure (without the
+    wear part the budget's Z std is 0.28 mm against an actual Z error of 1.2 mm)."""
+    m = _measure_worn(worn)
+    err = m.pose.dof - WORN_TRUE.dof
+    assert abs(err[5]) > 0.8                      # the case is a biased one
+    assert m.quality.edge_bias_dof is not None and m.quality.edge_bias_dof[5] > 0.8
+    assert np.all(np.abs(err) < 3 * m.std_dof), (err, m.std_dof)
+    assert np.linalg.norm(err[3:]) < m.quality.budget.position_3sigma_mm
+    wear_std = np.sqrt(np.diag(m.quality.budget.parts["wear"]))
+    assert wear_std[5] > 0.8 * abs(err[5])
+
+
+def test_worn_edges_accepted_pose_is_covered(worn):
+    """Under a tolerance the budget meets, the pose is accepted, and the accepted pose's error
+    is within the 3 sigma it states: never a tight std on a biased pose."""
+    m = _measure_worn(worn, Tolerance(position_mm=10.0, angle_deg=3.0))
+    assert m.ok, m.quality.reason
+    err = m.pose.dof - WORN_TRUE.dof
+    assert np.all(np.abs(err[3:]) < 3 * m.std_dof[3:])
+    assert np.linalg.norm(err[3:]) < m.quality.budget.position_3sigma_mm < 10.0
+
+
+def test_worn_edges_refused_at_the_robots_tolerance(worn):
+    """At the robot's 1 mm the same pose is refused, and the reason names the wear."""
+    m = _measure_worn(worn)
+    assert not m.ok
+    assert m.quality.reason.startswith("error budget: position at the grasp point")
+    assert m.quality.reason.endswith("largest part: wear")
 
 
 def test_clean_edges_have_no_wear_bias(rendered):
