@@ -35,6 +35,7 @@ from ..errors import CameraFileError, InputError
 
 __all__ = [
     "Camera", "PinholeCamera", "DivisionCamera", "PolynomialCamera", "OpenCVCamera",
+    "brown_conrady", "invert_brown_conrady",
     "camera_from_dict", "default_camera",
 ]
 
@@ -303,7 +304,7 @@ class OpenCVCamera(Camera):
         return d
 
     def _distort_norm(self, x, y, jacobian: bool = False):
-        return _radial_tangential(x, y, self._coeffs(), jacobian)
+        return brown_conrady(x, y, self._coeffs(), jacobian)
 
     def _to_norm(self, px):
         K = self.camera_matrix
@@ -321,7 +322,7 @@ class OpenCVCamera(Camera):
 
     def undistort_px(self, observed_px, iterations: int = 50) -> np.ndarray:
         p = _as_points(observed_px, 2, "observed_px")
-        return self._to_px(*_invert_radial_tangential(*self._to_norm(p), self._coeffs(),
+        return self._to_px(*invert_brown_conrady(*self._to_norm(p), self._coeffs(),
                                                       iterations))
 
     def to_dict(self) -> dict:
@@ -330,7 +331,7 @@ class OpenCVCamera(Camera):
                 "distortion_coefficients": self.dist_coeffs.tolist()}
 
 
-def _radial_tangential(x, y, c, jacobian: bool = False):
+def brown_conrady(x, y, c, jacobian: bool = False):
     """Brown-Conrady map ``(x, y) -> (x', y')`` with ``c = (k1, k2, p1, p2, k3, k4, k5, k6)``.
 
     OpenCV applies it from ideal to distorted normalised coordinates; HALCON's
@@ -356,12 +357,12 @@ def _radial_tangential(x, y, c, jacobian: bool = False):
     return xd, yd, j00, j01, j01, j11
 
 
-def _invert_radial_tangential(xt, yt, c, iterations: int = 50):
-    """Solve ``_radial_tangential(x, y, c) = (xt, yt)`` by Newton's method with the analytic
+def invert_brown_conrady(xt, yt, c, iterations: int = 50):
+    """Solve ``brown_conrady(x, y, c) = (xt, yt)`` by Newton's method with the analytic
     Jacobian, started at ``(xt, yt)``, to machine precision (no closed form exists)."""
     x, y = np.array(xt, float), np.array(yt, float)
     for _ in range(iterations):
-        fx_, fy_, a, b, cc, d = _radial_tangential(x, y, c, jacobian=True)
+        fx_, fy_, a, b, cc, d = brown_conrady(x, y, c, jacobian=True)
         rx, ry = fx_ - xt, fy_ - yt
         det = a * d - b * cc
         dx = (d * rx - b * ry) / det
@@ -445,12 +446,12 @@ class PolynomialCamera(Camera):
     def undistort_px(self, observed_px) -> np.ndarray:
         p = _as_points(observed_px, 2, "observed_px")
         c = self.normalized_coefficients()
-        return self._to_px(*_radial_tangential(*self._to_norm(p), c))
+        return self._to_px(*brown_conrady(*self._to_norm(p), c))
 
     def distort_px(self, ideal_px, iterations: int = 50) -> np.ndarray:
         p = _as_points(ideal_px, 2, "ideal_px")
         c = self.normalized_coefficients()
-        return self._to_px(*_invert_radial_tangential(*self._to_norm(p), c, iterations))
+        return self._to_px(*invert_brown_conrady(*self._to_norm(p), c, iterations))
 
     def to_dict(self) -> dict:
         d = {"name": self.name, "model": "polynomial", "image_size_px": list(self.image_size_px),

@@ -1,0 +1,276 @@
+"""Detection of HALCON's hexagonal calibration plates by their finder patterns.
+
+Pipeline (one grey image, a :class:`~cutterpose.calibration.halcon_plate.HexagonalPlate`):
+
+1. marks: adaptive threshold (``cv2.adaptiveThreshold``, robust to uneven light) of the marks'
+   polarity, contours with their holes (``cv2.findContours``, two-level hierarchy), ellipse
+   fit and a roundness test per contour (``cv2.fitEllipse``); a mark *has a hole* when its
+   contour encloses a round child contour near its centre;
+2. sub-pixel centres: ellipse fit on sub-pixel grey-level crossings of the mark's outer edge
+   (the hole's edge is left out);
+3. finder patterns: every mark whose six nearest marks surround it is a candidate hexagon; its
+   hole flags (centre first, then the ring anticlockwise on the page) are compared with each
+   finder pattern of the description under the six rotations; a match gives seven
+   correspondences and a plate-to-image homography;
+4. hexagonal indexing: from the finder the match grows ring by ring over the plate's
+   neighbour graph: each unmatched mark next to matched ones is predicted by a homography of
+   the matched marks around it (local, so lens distortion does not accumulate) and takes the
+   nearest detected mark within a third of the local spacing. Every mark found carries its
+   plate index (``ids``), so partial views of the plate are usable.
+
+Why by hand: OpenCV's ``findCirclesGrid`` knows rectangular and OpenCV's own asymmetric grids,
+needs the whole grid in view, and has no notion of holes or finder patterns; no library in
+reach decodes HALCON's hexagonal plates. Mark extraction, ellipse fits and homographies are
+OpenCV's; the matching of finder patterns and the lattice indexing are written here.
+
+References:
+    MVTec HALCON reference manual, ``create_caltab`` (finder patterns) and
+    ``find_calib_object``. R. Hartley, A. Zisserman, "Multiple View Geometry", 2nd ed., 4.1
+    (homography from point correspondences).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+__all__ = ["HexDetection", "detect_hexagonal", "find_marks"]
+
+
+@dataclass
+class HexDetection:
+    """Marks of one image in plate order; falsy (with ``reason``) when the plate is not found.
+
+    Attributes
+    ----------
+    points_px : (n, 2) sub-pixel mark centres (observed pixels).
+    ids : (n,) plate index of each mark (rows of ``points_target_mm``).
+    reason : why nothing usable was found ("" when found).
+    finders : number of finder patterns seen whole.
+    """
+
+    points_px: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    ids: np.ndarray = field(default_factory=lambda: np.zeros(0, int))
+    reason: str = ""
+    finders: int = 0
+
+    def __bool__(self) -> bool:
+        return not self.reason and len(self.ids) > 0
+
+
+# ------------------------------------------------------------------------------------------
+# marks
+@dataclass
+class _Marks:
+    centre: np.ndarray  # (n, 2) rough centres
+    axes: np.ndarray  # (n, 2) full ellipse axes
+    angle: np.ndarray  # (n,) degrees
+    hole: np.ndarray  # (n,) bool
+
+
+def find_marks(gray: np.ndarray, light_marks: bool, min_area_px: float = 12.0) -> _Marks:
+    """Round blobs of the marks' polarity, with a flag for a central hole."""
+    import cv2
+
+    g = gray if light_marks else 255 - gray
+    h, w = g.shape
+    block = max(15, (min(h, w) // 8) | 1)
+    binary = cv2.adaptiveThreshold(g, 255, cv2.ADAPTIVE_THRESH_MEAN_C, cv2.THRESH_BINARY,
+                                   block, -5)
+    contours, hier = cv2.findContours(binary, cv2.RETR_CCOMP, cv2.CHAIN_APPROX_NONE)
+    out = []
+    if hier is None:
+        return _Marks(np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0), np.zeros(0, bool))
+    hier = hier[0]
+    for k, c in enumerate(contours):
+        if hier[k, 3] != -1 or len(c) < 8:
+            continue  # holes are handled with their parent
+        area = cv2.contourArea(c)
+        x, y, bw, bh = cv2.boundingRect(c)
+        if area < min_area_px or x <= 0 or y <= 0 or x + bw >= w or y + bh >= h:
+            continue  # too small, or cut by the image border
+        (cu, cv_), (a1, a2), ang = cv2.fitEllipse(c)
+        ell = np.pi / 4 * a1 * a2
+        if not (0.8 < area / max(ell, 1e-9) < 1.2) or min(a1, a2) < 0.25 * max(a1, a2):
+            continue
+        hole = False
+        j = hier[k, 2]
+        while j != -1:
+            ch = contours[j]
+            ca = cv2.contourArea(ch)
+            if len(ch) >= 5 and 0.03 < ca / area < 0.6:
+                (hu, hv), _, _ = cv2.fitEllipse(ch)
+                if np.hypot(hu - cu, hv - cv_) < 0.2 * min(a1, a2):
+                    hole = True
+            j = hier[j, 0]
+        out.append((cu, cv_, a1, a2, ang, hole))
+    if not out:
+        return _Marks(np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0), np.zeros(0, bool))
+    a = np.array(out, float)
+    return _Marks(a[:, :2], a[:, 2:4], a[:, 4], a[:, 5].astype(bool))
+
+
+def _refine_centre(g: np.ndarray, centre, axes, angle) -> np.ndarray | None:
+    """Ellipse fit on sub-pixel crossings of the mark's outer edge (marks bright in ``g``)."""
+    import cv2
+
+    h, w = g.shape
+    half = int(np.ceil(0.5 * max(axes) * 1.4)) + 2
+    u0, v0 = int(round(centre[0])) - half, int(round(centre[1])) - half
+    u1, v1 = u0 + 2 * half + 1, v0 + 2 * half + 1
+    if u0 < 0 or v0 < 0 or u1 > w or v1 > h:
+        return None
+    roi = g[v0:v1, u0:u1].astype(float)
+    # pixels in a band around the fitted outer edge only (the hole's edge stays out)
+    vv, uu = np.mgrid[v0:v1, u0:u1].astype(float)
+    t = np.radians(angle)
+    du, dv = uu - centre[0], vv - centre[1]
+    p = (du * np.cos(t) + dv * np.sin(t)) / (0.5 * axes[0])
+    q = (-du * np.sin(t) + dv * np.cos(t)) / (0.5 * axes[1])
+    rho = np.hypot(p, q)
+    band = (rho > 0.72) & (rho < 1.3)
+    inner, outer = roi[rho < 0.72], roi[(rho > 1.3) & (rho < 1.6)]
+    if inner.size == 0 or outer.size == 0:
+        return None
+    thr = 0.5 * (np.percentile(inner, 90) + np.percentile(outer, 10))
+    pts = []
+    for a0, a1, b0, b1, m0, m1, horiz in (
+            (roi[:, :-1], roi[:, 1:], None, None, band[:, :-1], band[:, 1:], True),
+            (roi[:-1, :], roi[1:, :], None, None, band[:-1, :], band[1:, :], False)):
+        m = ((a0 - thr) * (a1 - thr) < 0) & m0 & m1
+        v, u = np.nonzero(m)
+        f = (thr - a0[m]) / (a1[m] - a0[m])
+        pts.append(np.stack([u + f, v.astype(float)], 1) if horiz
+                   else np.stack([u.astype(float), v + f], 1))
+    e = np.concatenate(pts)
+    if len(e) < 10:
+        return None
+    mean = e.mean(axis=0)
+    (eu, ev), _, _ = cv2.fitEllipse((e - mean).astype(np.float32))
+    return np.array([eu + mean[0] + u0, ev + mean[1] + v0])
+
+
+# ------------------------------------------------------------------------------------------
+# finder patterns and indexing
+def _ring_order(centre, pts) -> np.ndarray:
+    """Order of 6 points around ``centre``, anticlockwise on the page starting nearest to the
+    right-hand direction (the plate's neighbour order)."""
+    d = pts - centre
+    ang = np.degrees(np.arctan2(-d[:, 1], d[:, 0])) % 360.0
+    return np.argsort(ang)
+
+
+def _seeds(marks: _Marks, plate):
+    """Image hexagons that match one of the plate's finder patterns: (plate ids, blob ids)."""
+    from scipy.spatial import cKDTree
+
+    n = len(marks.centre)
+    if n < 7:
+        return []
+    tree = cKDTree(marks.centre)
+    dist, idx = tree.query(marks.centre, k=7)
+    seeds = []
+    for c in range(n):
+        ring_d = dist[c, 1:]
+        if ring_d.max() > 2.0 * ring_d.min():
+            continue
+        ring = idx[c, 1:][_ring_order(marks.centre[c], marks.centre[idx[c, 1:]])]
+        flags = np.concatenate([[marks.hole[c]], marks.hole[ring]])
+        if flags.sum() not in (4, 6):
+            continue
+        for pc, pring, pflags in plate.finders:
+            if flags[0] != pflags[0]:
+                continue
+            for k in range(6):
+                rolled = np.roll(flags[1:], -k)
+                if np.array_equal(rolled, pflags[1:]):
+                    # plate ring j <-> image ring (j + k) % 6
+                    img = np.concatenate([[c], np.roll(ring, -k)])
+                    seeds.append((np.concatenate([[pc], pring]), img))
+    return seeds
+
+
+def _grow(marks: _Marks, plate, seed_plate, seed_img, tol: float = 0.33):
+    """Match plate marks to detected marks outward from a seed (module docstring, step 4)."""
+    import cv2
+    from scipy.spatial import cKDTree
+
+    tree = cKDTree(marks.centre)
+    xy = plate.marks_mm
+    s = plate.spacing_mm
+    match = dict(zip(seed_plate.tolist(), seed_img.tolist()))
+    used = set(match.values())
+    for _ in range(4 * max(plate.description.rows or 30, plate.description.cols or 30)):
+        known = np.array(sorted(match))
+        nb = plate.neighbours[known].ravel()
+        frontier = np.setdiff1d(nb[nb >= 0], known)
+        added = 0
+        for m in frontier:
+            d = np.linalg.norm(xy[known] - xy[m], axis=1)
+            near = known[np.argsort(d)[:10]]
+            if len(near) < 4:
+                continue
+            src = xy[near].astype(np.float64)
+            dst = marks.centre[[match[k] for k in near]].astype(np.float64)
+            H, _ = cv2.findHomography(src, dst, 0)
+            if H is None:
+                continue
+            q = np.array([xy[m], xy[m] + [s, 0.0]])
+            ph = np.c_[q, np.ones(2)] @ H.T
+            pred = ph[:, :2] / ph[:, 2:]
+            step = np.linalg.norm(pred[1] - pred[0])
+            dd, j = tree.query(pred[0])
+            if np.isfinite(dd) and dd < tol * step and j not in used:
+                match[int(m)] = int(j)
+                used.add(int(j))
+                added += 1
+        if added == 0:
+            break
+    ids = np.array(sorted(match))
+    return ids, np.array([match[k] for k in ids])
+
+
+def detect_hexagonal(gray, plate) -> HexDetection:
+    """Find a hexagonal plate's marks (module docstring). Never raises on image content: a
+    plate not found gives a falsy :class:`HexDetection` whose ``reason`` says why."""
+    import cv2
+
+    g = np.asarray(gray)
+    if g.ndim == 3:
+        g = cv2.cvtColor(g, cv2.COLOR_BGR2GRAY)
+    if g.ndim != 2 or g.size == 0:
+        return HexDetection(reason=f"not a grey image (shape {g.shape})")
+    if g.dtype != np.uint8:
+        g = np.clip(g, 0, 255).astype(np.uint8)
+    light = plate.polarity == "light_on_dark"
+    marks = find_marks(g, light)
+    if len(marks.centre) < 7:
+        return HexDetection(reason=f"only {len(marks.centre)} round marks found")
+    seeds = _seeds(marks, plate)
+    if not seeds:
+        return HexDetection(reason=f"no finder pattern seen whole ({len(marks.centre)} marks, "
+                                   f"{int(marks.hole.sum())} with a hole)")
+    best = None
+    for sp, si in seeds[:8]:
+        if best is not None and sp[0] in best[1]:
+            k = int(np.searchsorted(best[1], sp[0]))
+            if best[2][k] == si[0]:
+                continue  # this finder already lies where the best match put it
+        ids, blobs = _grow(marks, plate, sp, si)
+        # the holes found must agree with the plate's (a wrong seed disagrees widely)
+        agree = float(np.mean(marks.hole[blobs] == (plate.hole_radius_mm[ids] > 0)))
+        score = len(ids) * agree
+        if best is None or score > best[0]:
+            best = (score, ids, blobs, agree)
+    _, ids, blobs, agree = best
+    if agree < 0.95:
+        return HexDetection(reason=f"finder pattern matched but {100 * (1 - agree):.0f} % of "
+                                   "the marks disagree with the plate's holes")
+    gm = g if light else 255 - g
+    pts = [_refine_centre(gm, marks.centre[b], marks.axes[b], marks.angle[b]) for b in blobs]
+    ok = np.array([p is not None for p in pts])
+    if ok.sum() < 7:
+        return HexDetection(reason="too few marks with a measurable edge")
+    finders = len({f[0] for f in plate.finders} & set(ids[ok].tolist()))
+    return HexDetection(np.array([p for p in pts if p is not None]), ids[ok], "", finders)
