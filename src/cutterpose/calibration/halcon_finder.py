@@ -135,9 +135,9 @@ def _refine_centre(g: np.ndarray, centre, axes, angle) -> np.ndarray | None:
         return None
     thr = 0.5 * (np.percentile(inner, 90) + np.percentile(outer, 10))
     pts = []
-    for a0, a1, b0, b1, m0, m1, horiz in (
-            (roi[:, :-1], roi[:, 1:], None, None, band[:, :-1], band[:, 1:], True),
-            (roi[:-1, :], roi[1:, :], None, None, band[:-1, :], band[1:, :], False)):
+    for a0, a1, m0, m1, horiz in (
+            (roi[:, :-1], roi[:, 1:], band[:, :-1], band[:, 1:], True),
+            (roi[:-1, :], roi[1:, :], band[:-1, :], band[1:, :], False)):
         m = ((a0 - thr) * (a1 - thr) < 0) & m0 & m1
         v, u = np.nonzero(m)
         f = (thr - a0[m]) / (a1[m] - a0[m])
@@ -206,25 +206,31 @@ def _grow(marks: _Marks, plate, seed_plate, seed_img, tol: float = 0.33):
         nb = plate.neighbours[known].ravel()
         frontier = np.setdiff1d(nb[nb >= 0], known)
         added = 0
-        for m in frontier:
-            d = np.linalg.norm(xy[known] - xy[m], axis=1)
-            near = known[np.argsort(d)[:10]]
+        # one local homography per cell of 3 x 3 spacings: the matched marks nearest to the
+        # cell's frontier marks predict them (local, so lens distortion does not accumulate)
+        cell = np.floor(xy[frontier] / (3.0 * s)).astype(int)
+        _, group = np.unique(cell, axis=0, return_inverse=True)
+        for g in range(group.max() + 1 if len(frontier) else 0):
+            ms = frontier[group.ravel() == g]
+            d = np.linalg.norm(xy[known] - xy[ms].mean(axis=0), axis=1)
+            near = known[np.argsort(d)[:12]]
             if len(near) < 4:
                 continue
-            src = xy[near].astype(np.float64)
-            dst = marks.centre[[match[k] for k in near]].astype(np.float64)
-            H, _ = cv2.findHomography(src, dst, 0)
+            H, _ = cv2.findHomography(xy[near].astype(np.float64),
+                                      marks.centre[[match[k] for k in near]].astype(np.float64),
+                                      0)
             if H is None:
                 continue
-            q = np.array([xy[m], xy[m] + [s, 0.0]])
-            ph = np.c_[q, np.ones(2)] @ H.T
+            q = np.concatenate([xy[ms], xy[ms] + [s, 0.0]])
+            ph = np.c_[q, np.ones(len(q))] @ H.T
             pred = ph[:, :2] / ph[:, 2:]
-            step = np.linalg.norm(pred[1] - pred[0])
-            dd, j = tree.query(pred[0])
-            if np.isfinite(dd) and dd < tol * step and j not in used:
-                match[int(m)] = int(j)
-                used.add(int(j))
-                added += 1
+            step = np.linalg.norm(pred[len(ms):] - pred[:len(ms)], axis=1)
+            dd, j = tree.query(pred[:len(ms)])
+            for m, dm, jm, st in zip(ms, dd, j, step):
+                if np.isfinite(dm) and dm < tol * st and int(jm) not in used:
+                    match[int(m)] = int(jm)
+                    used.add(int(jm))
+                    added += 1
         if added == 0:
             break
     ids = np.array(sorted(match))

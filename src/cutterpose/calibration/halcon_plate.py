@@ -450,8 +450,10 @@ class HexagonalPlate:
     def outline_mm(self, n_per_side: int = 32) -> np.ndarray:
         ex, ey = self.half_extent_mm
         t = np.linspace(-1, 1, n_per_side, endpoint=False)
-        p = np.concatenate([np.stack([t * ex, -ey + 0 * t], 1), np.stack([ex + 0 * t, t * ey], 1),
-                            np.stack([-t * ex, ey + 0 * t], 1), np.stack([-ex + 0 * t, -t * ey], 1)])
+        p = np.concatenate([np.stack([t * ex, -ey + 0 * t], 1),
+                            np.stack([ex + 0 * t, t * ey], 1),
+                            np.stack([-t * ex, ey + 0 * t], 1),
+                            np.stack([-ex + 0 * t, -t * ey], 1)])
         return np.c_[p, np.zeros(len(p))]
 
     def circle_outline_mm(self, n: int = 64) -> np.ndarray:

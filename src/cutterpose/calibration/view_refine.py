@@ -16,7 +16,8 @@ works in units of Sy and f: ``fy = f / Sy`` [px], ``a = Sx / Sy``, ``k = kappa S
 polynomial's coefficients in units of f (``K1 f^2, K2 f^4, K3 f^6, P1 f, P2 f``), which keeps
 the problem well scaled. Initial values: ``cv2.initCameraMatrix2D`` (closed form from the
 views' homographies, which accepts views of different point sets) and ``cv2.solvePnP`` per
-view. Refinement: ``scipy.optimize.least_squares`` with the block-sparse Jacobian pattern.
+view. Refinement: ``scipy.optimize.least_squares`` (Levenberg-Marquardt) with a Jacobian by
+forward differences grouped over the views (a view's residuals depend only on its own pose).
 Standard deviations: ``s^2 (J^T J)^-1`` with ``s^2 = |r|^2 / (m - n)``, carried to the metric
 parameters through the Jacobian of the unit change. The ellipse-centre bias of circular marks
 is corrected as in :mod:`cutterpose.calibration.intrinsics` (2 rounds).
@@ -30,7 +31,6 @@ from __future__ import annotations
 
 import numpy as np
 from scipy.optimize import least_squares
-from scipy.sparse import lil_matrix
 from scipy.spatial.transform import Rotation
 
 from ..errors import DegenerateInputError, InputError
@@ -136,13 +136,26 @@ def refine_views(model: str, X_views, px_views, image_size_px, pixel_height_m: f
         pose = x[nq:].reshape(M, 6)
         return (_project(model, x[:nq], pose[:, :3], pose[:, 3:], X, view_of) - obs).ravel()
 
-    S = lil_matrix((2 * len(X), nq + 6 * M), dtype=int)
-    S[:, :nq] = 1
-    rows = np.repeat(2 * np.arange(len(X)), 2) + np.tile([0, 1], len(X))
-    for j in range(6):
-        S[rows, nq + 6 * np.repeat(view_of, 2) + j] = 1
-    res = least_squares(fun, x0, jac_sparsity=S, method="trf", x_scale="jac",
-                        xtol=1e-12, ftol=1e-12, gtol=1e-12, max_nfev=200)
+    def jac(x):
+        # forward differences, grouped: one evaluation per intrinsic, and one per pose
+        # parameter for all views at once (a view's residuals depend on its own pose only)
+        f0 = fun(x)
+        J = np.zeros((len(f0), len(x)))
+        rows = np.repeat(view_of, 2)
+        for j in range(nq + 6):
+            h = 1e-7 * max(abs(x[j]), 1.0) if j < nq else 1e-7
+            dx = np.zeros_like(x)
+            cols = [j] if j < nq else nq + 6 * np.arange(M) + (j - nq)
+            dx[cols] = h if j < nq else np.maximum(1e-7 * np.abs(x[cols]), 1e-7)
+            d = (fun(x + dx) - f0)
+            if j < nq:
+                J[:, j] = d / h
+            else:
+                J[np.arange(len(f0)), np.asarray(cols)[rows]] = d / dx[np.asarray(cols)[rows]]
+        return J
+
+    res = least_squares(fun, x0, jac=jac, method="lm", x_scale="jac",
+                        xtol=1e-12, ftol=1e-12, gtol=1e-12, max_nfev=100)
     q = res.x[:nq]
     J = res.jac.toarray() if hasattr(res.jac, "toarray") else np.asarray(res.jac)
     s2 = 2.0 * res.cost / max(len(res.fun) - len(res.x), 1)
