@@ -181,6 +181,12 @@ def test_polynomial_conversions(tmp_path):
     cam = PolynomialCamera(0.0121, -812.5, 2.5e6, 0.0, 0.21, -0.17, (3.45e-6, 3.45e-6),
                            (1012.5, 771.25), (2048, 1536))
     assert convert_camera(cam, "halcon").exact
+    # another pixel height: the same camera (exact), expressed in other metric units
+    conv = convert_camera(cam, "halcon", pixel_height_m=5e-6)
+    assert conv.exact and isinstance(conv.camera, PolynomialCamera)
+    assert conv.camera.pixel_size_m[1] == 5e-6
+    g = np.random.default_rng(2).uniform([0, 0], [2047, 1535], (200, 2))
+    np.testing.assert_allclose(conv.camera.pixel_to_ray(g), cam.pixel_to_ray(g), atol=1e-12)
     conv = to_opencv(cam)
     assert not conv.exact and conv.max_error_px < 0.5
     with pytest.raises(CameraFileError, match="polynomial"):

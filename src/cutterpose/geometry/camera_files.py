@@ -434,6 +434,18 @@ def to_division(cam: Camera, pixel_height_m: float | None = None) -> Conversion:
     return _fit(cam, build, x0)
 
 
+def _rescale_polynomial(cam: PolynomialCamera, pixel_height_m: float | None):
+    """The same polynomial camera expressed with pixel height ``pixel_height_m`` (exact: only
+    f/Sx and f/Sy are observable; f, Sx and the coefficients scale with Sy)."""
+    if pixel_height_m is None or pixel_height_m == cam.pixel_size_m[1]:
+        return cam
+    s = float(pixel_height_m) / cam.pixel_size_m[1]
+    return PolynomialCamera(cam.focal_length_m * s, cam.k1_per_m2 / s**2, cam.k2_per_m4 / s**4,
+                            cam.k3_per_m6 / s**6, cam.p1_per_m / s, cam.p2_per_m / s,
+                            (cam.pixel_size_m[0] * s, float(pixel_height_m)),
+                            cam.principal_point_px, cam.image_size_px, name=cam.name)
+
+
 def convert_camera(cam: Camera, target_format: str,
                    pixel_height_m: float | None = None) -> Conversion:
     """Convert ``cam`` to a model that ``target_format`` can hold.
@@ -446,8 +458,8 @@ def convert_camera(cam: Camera, target_format: str,
     if target_format == "json":
         return Conversion(cam, True)
     if target_format == "halcon":
-        if isinstance(cam, PolynomialCamera) and pixel_height_m is None:
-            return Conversion(cam, True)
+        if isinstance(cam, PolynomialCamera):
+            return Conversion(_rescale_polynomial(cam, pixel_height_m), True)
         return to_division(cam, pixel_height_m)
     if target_format in ("opencv", "ros"):
         if isinstance(cam, (PinholeCamera, OpenCVCamera)):
