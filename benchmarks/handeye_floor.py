@@ -35,11 +35,10 @@ import numpy as np
 
 from cutterpose.calibration.handeye import (
     OPENCV_METHODS,
-    _compose,
-    _Problem,
     bundle_adjust_handeye,
     calibrate_handeye,
 )
+from cutterpose.calibration.handeye_problem import HandEyeProblem, compose_xy
 from cutterpose.geometry.camera import default_camera
 from cutterpose.geometry.pose import Pose, geodesic_deg
 from cutterpose.robot.cell import RobotCell
@@ -61,7 +60,7 @@ def crlb(cell: RobotCell, true: list[Pose], sigma_px: float, rep_mm: float,
     obs = cell.plate_points(true)  # noise-free, with the bias the problem removes
     bias = obs - np.stack([cell.camera.project(cell.camera_view(a, cell.T_base_plate)
                                                .apply(P)) for a in true])
-    prob = _Problem(cell.camera, P, true, obs, bias, sigma_px, rep_mm, math.radians(rep_deg))
+    prob = HandEyeProblem(cell.camera, P, true, obs, bias, sigma_px, rep_mm, math.radians(rep_deg))
     X0, Y0 = cell.T_flange_cam, cell.T_base_plate
     prob.set_weights(X0, Y0)
     x0 = np.concatenate([np.zeros(3), X0.t_mm, np.zeros(3), Y0.t_mm])
@@ -70,8 +69,8 @@ def crlb(cell: RobotCell, true: list[Pose], sigma_px: float, rep_mm: float,
         h = 1e-7 if k in (0, 1, 2, 6, 7, 8) else 1e-4
         d = np.zeros(12)
         d[k] = h
-        rp = prob.residuals(*_compose(X0, Y0, x0 + d)).ravel()
-        rm = prob.residuals(*_compose(X0, Y0, x0 - d)).ravel()
+        rp = prob.residuals(*compose_xy(X0, Y0, x0 + d)).ravel()
+        rm = prob.residuals(*compose_xy(X0, Y0, x0 - d)).ravel()
         J[:, k] = (rp - rm) / (2 * h)
     C = np.linalg.inv(J.T @ J)[:6, :6]  # (dphi, t) of X
     p = X0.R @ P_HOLDER_CAM_MM

@@ -15,12 +15,11 @@ from scipy.spatial.transform import Rotation
 from typer.testing import CliRunner
 
 from cutterpose.calibration.handeye import (
-    NUMPY_METHODS,
-    _numpy_start,
     calibrate_handeye,
     load_handeye,
     save_handeye,
 )
+from cutterpose.calibration.handeye_starts import NUMPY_METHODS, numpy_start
 from cutterpose.calibration.intrinsics import detect_plate
 from cutterpose.cli import app
 from cutterpose.errors import DegenerateInputError, HandEyeFileError, InputError
@@ -89,7 +88,7 @@ def test_numpy_starts_are_exact_on_exact_data(method, cam_quarter):
     cell = RobotCell.random(cam_quarter, seed=8)
     A = cell.plate_stations(6, seed=8)
     B = [cell.camera_view(a, cell.T_base_plate) for a in A]
-    X, Y = _numpy_start(method, A, B)
+    X, Y = numpy_start(method, A, B)
     assert _err(X, cell.T_flange_cam)[0] < 1e-6 and _err(X, cell.T_flange_cam)[1] < 1e-7
     assert _err(Y, cell.T_base_plate)[0] < 1e-6
 
@@ -138,7 +137,7 @@ def test_cli_robot_cell_and_handeye(tmp_path, cam_quarter):
     res = runner.invoke(app, ["handeye", str(cell_dir), "--robot-poses",
                               str(tmp_path / "short.csv"), "--camera", str(cam_file),
                               "--out", str(out)])
-    assert res.exit_code == 2 and "6 plate images but 5 robot poses" in res.output
+    assert res.exit_code == 2 and "6 target images but 5 robot poses" in res.output
 
 
 def test_cli_render_plate_at_given_poses(tmp_path, cam_quarter):

@@ -16,6 +16,8 @@ Convention:
     ur, rotvec   x,y,z,rx,ry,rz              rotation vector (axis * angle)       L, A
     kuka         x,y,z,a,b,c                 ``Rz(A) Ry(B) Rx(C)``, Z-Y'-X''      mm, deg
     fanuc        x,y,z,w,p,r                 ``Rz(R) Ry(P) Rx(W)``, fixed X-Y-Z   mm, deg
+    yaskawa      x,y,z,rx,ry,rz              ``Rz(Rz) Ry(Ry) Rx(Rx)``, fixed X-Y-Z mm, deg
+    visp         x,y,z,tux,tuy,tuz           theta-u (rotation vector)            m, rad
     matrix       m00,m01,...,m33             4x4 homogeneous, row-major           L
     ===========  ==========================  ===================================  ========
 
@@ -24,7 +26,10 @@ Convention:
     KUKA's A, B, C turn about Z, then the new Y', then the new X'' (intrinsic; scipy ``"ZYX"``
     with ``[A, B, C]``). Fanuc's W, P, R turn about the fixed X, then the fixed Y, then the fixed
     Z of the user frame (extrinsic; scipy ``"xyz"`` with ``[W, P, R]``); both give the same
-    matrix ``Rz Ry Rx`` -- only the names and the order of the numbers differ. A UR rotation
+    matrix ``Rz Ry Rx`` -- only the names and the order of the numbers differ. Yaskawa's Rx, Ry,
+    Rz (pendant and job files, mm and deg) are that same fixed X, then Y, then Z order, written
+    in the order x, y, z. ViSP's ``vpPoseVector`` is the translation in metres and theta-u (the
+    rotation vector, axis * angle) in radians. A UR rotation
     vector is ``axis * angle`` (the pendant shows it in rad; URScript uses m and rad). ABB's
     ``orient`` is ``[q1, q2, q3, q4] = [w, x, y, z]``. A vendor's own units are used only when
     its controller knows no other (KUKA, Fanuc: mm and deg; ABB: mm); every other length or
@@ -51,6 +56,12 @@ References:
     Universal Robots, "Explanation on robot orientation" (rotation vector, URScript ``p[x, y, z,
     rx, ry, rz]`` in m and rad).
     ROS REP 103 (quaternion x, y, z, w; metres).
+    Yaskawa Rx, Ry, Rz: Roboception rc_visard manual, "Yaskawa pose format" (position in mm,
+    angles in deg, ``R = rz(Rz) ry(Ry) rx(Rx)``), and the YRC1000 INFORM manual (``C`` position
+    variables in mm and deg).
+    ViSP ``vpPoseVector`` (``saveYAML``: ``rows: 6, cols: 1, data: [[tx], [ty], [tz], [tux],
+    [tuy], [tuz]]``, metres and radians), as written by ViSP's hand-eye tutorials
+    (``pose_fPe_N.yaml``).
 """
 
 from __future__ import annotations
@@ -109,6 +120,10 @@ CONVENTIONS: dict[str, PoseConvention] = {c.name: c for c in [
                    length_unit="mm", angle_unit="deg"),
     PoseConvention("fanuc", ("x", "y", "z", "w", "p", "r"), "euler", "xyz", (3, 4, 5),
                    length_unit="mm", angle_unit="deg"),
+    PoseConvention("yaskawa", ("x", "y", "z", "rx", "ry", "rz"), "euler", "xyz", (3, 4, 5),
+                   length_unit="mm", angle_unit="deg"),
+    PoseConvention("visp", ("x", "y", "z", "tux", "tuy", "tuz"), "rotvec", length_unit="m",
+                   angle_unit="rad"),
     PoseConvention("matrix", _MATRIX_COLUMNS, "matrix", inferable=True),
 ]}
 
@@ -160,6 +175,13 @@ def _rotations_from_rows(rows: np.ndarray, conv: PoseConvention, angle_scale_deg
             raise InputError(f"pose {k}: the quaternion has norm {n[k]:.6g}, not 1 (check the "
                              f"column order: {', '.join(conv.columns[3:])})")
         return Rotation.from_quat(q / n[:, None]), t
+    # a controller writes angles within one turn: more means degrees read as radians
+    turn = (np.linalg.norm(rows[:, 3:6], axis=1) if conv.rotation == "rotvec"
+            else np.abs(rows[:, 3:6]).max(axis=1)) * angle_scale_deg
+    if np.any(turn > 360.0 + 1e-6):
+        k = int(np.argmax(turn))
+        raise InputError(f"pose {k}: a rotation of {turn[k]:.0f} deg (more than one turn): the "
+                         "angles are likely in degrees read as radians; state the angle unit")
     if conv.rotation == "rotvec":
         return Rotation.from_rotvec(np.radians(rows[:, 3:6] * angle_scale_deg)), t
     angles = rows[:, list(conv.euler_order)] * angle_scale_deg
@@ -322,6 +344,12 @@ def _read_csv(text: str, where: str, convention, length_unit, angle_unit):
         raise InputError(
             f"{where}: no pose convention; add a line '# convention: NAME' (one of "
             f"{', '.join(CONVENTIONS)}) or give it on the command line")
+    width = len(header) if header is not None else len(rows[0]) if rows else 0
+    for k, r in enumerate(rows):
+        if len(r) != width:
+            raise InputError(f"{where}: pose row {k + 1} has {len(r)} values, the "
+                             f"{'header' if header is not None else 'first row'} {width} "
+                             "(a ragged row)")
     try:
         data = np.array([[float(v) for v in r] for r in rows], float)
     except ValueError as e:
