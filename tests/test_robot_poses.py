@@ -198,3 +198,149 @@ def test_own_axes_and_dof_covariances():
     sd = np.sqrt(np.diag(c[3:, 3:]))
     np.testing.assert_allclose(np.cov(phis.T) / np.outer(sd, sd), c[3:, 3:] / np.outer(sd, sd),
                                atol=0.08)
+
+
+# ---- pose files as controllers, ROS and ViSP write them (issue 29) ---------------------------
+def test_yaskawa_and_visp_conventions_against_hand_products():
+    # Yaskawa Rx, Ry, Rz = 10, 20, 30: Rz(30) Ry(20) Rx(10) (fixed X, then Y, then Z)
+    expect = _axis_rot(2, 30) @ _axis_rot(1, 20) @ _axis_rot(0, 10)
+    y = poses_from_rows([[100, 200, 300, 10, 20, 30]], "yaskawa")[0]
+    np.testing.assert_allclose(y.R, expect, atol=1e-12)
+    np.testing.assert_allclose(y.t_mm, [100, 200, 300])
+    # ViSP theta-u in metres and radians: a quarter turn about z
+    v = poses_from_rows([[0.1, 0.2, 0.3, 0, 0, math.pi / 2]], "visp")[0]
+    np.testing.assert_allclose(v.R, RZ90, atol=1e-12)
+    np.testing.assert_allclose(v.t_mm, [100, 200, 300], atol=1e-9)
+
+
+def _ros_text(t_m, q_xyzw) -> str:
+    return "".join(f"{k}: {v!r}\n" for k, v in zip(("x", "y", "z", "qx", "qy", "qz", "qw"),
+                                                    list(t_m) + list(q_xyzw)))
+
+
+def test_ros_yaml_single_list_and_geometry_msgs_forms(tmp_path):
+    from cutterpose.robot.pose_files import read_pose_file
+
+    f = tmp_path / "3.yaml"  # robot_cal_tools' poses/N.yaml
+    f.write_text(_ros_text([0.1, 0.2, 0.3], [0, 0, H, H]))
+    s = read_pose_file(f)
+    assert s.names == ["3"] and s.formats == ["ros-yaml"]
+    np.testing.assert_allclose(s.poses[0].R, RZ90, atol=1e-12)
+    np.testing.assert_allclose(s.poses[0].t_mm, [100, 200, 300], atol=1e-9)
+    lst = tmp_path / "cell.yaml"
+    lst.write_text("poses:\n"
+                   "  - {position: {x: 0.1, y: 0.2, z: 0.3}, orientation: {x: 0, y: 0, z: "
+                   f"{H!r}, w: {H!r}}}}}\n"
+                   "  - transform: {translation: {x: 1.0, y: 0, z: 0}, rotation: {x: 0, y: 0, "
+                   "z: 0, w: 1}}\n")
+    s = read_pose_file(lst)
+    assert s.names == ["cell:0", "cell:1"]
+    np.testing.assert_allclose(s.poses[0].R, RZ90, atol=1e-12)
+    np.testing.assert_allclose(s.poses[1].t_mm, [1000, 0, 0])
+
+
+def test_visp_pose_vector_file(tmp_path):
+    from cutterpose.robot.pose_files import read_pose_file
+
+    f = tmp_path / "pose_fPe_2.yaml"
+    f.write_text(f"rows: 6\ncols: 1\ndata:\n  - [0.1]\n  - [0.2]\n  - [0.3]\n  - [0]\n  - [0]\n"
+                 f"  - [{math.pi / 2!r}]\n")
+    s = read_pose_file(f)
+    assert s.formats == ["visp-yaml"]
+    np.testing.assert_allclose(s.poses[0].R, RZ90, atol=1e-12)
+    np.testing.assert_allclose(s.poses[0].t_mm, [100, 200, 300], atol=1e-9)
+    f.write_text("rows: 6\ncols: 1\ndata:\n  - [0.1]\n  - [0.2]\n")
+    with pytest.raises(InputError, match="6 one-number rows"):
+        read_pose_file(f)
+
+
+JBI = """/JOB
+//NAME HANDEYE
+//POS
+///NPOS 2,0,0,0,0,0
+///TOOL 0
+///POSTYPE ROBOT
+///RECTAN
+///RCONF 0,0,0,0,0,0,0,0
+C00000=100.000,200.000,300.000,0.0000,0.0000,90.0000
+C00001=1012.500,-230.100,845.000,10.0000,20.0000,30.0000
+//INST
+///DATE 2026/12/03 12:00
+NOP
+MOVJ C00000 VJ=10.00
+END
+"""
+
+
+def test_yaskawa_job_file_and_its_refusals(tmp_path):
+    from cutterpose.robot.pose_files import read_pose_file
+
+    f = tmp_path / "CELL.JBI"
+    f.write_text(JBI)
+    s = read_pose_file(f)
+    assert s.names == ["CELL:C00000", "CELL:C00001"]
+    np.testing.assert_allclose(s.poses[0].R, RZ90, atol=1e-12)
+    np.testing.assert_allclose(s.poses[1].R, _axis_rot(2, 30) @ _axis_rot(1, 20)
+                               @ _axis_rot(0, 10), atol=1e-12)
+    f.write_text(JBI.replace("///RECTAN", "///PULSE"))
+    with pytest.raises(InputError, match="joint pulses"):
+        read_pose_file(f)
+    f.write_text(JBI.replace("30.0000\n", "30.0000\n///TOOL 2\n"))
+    with pytest.raises(InputError, match="different tools"):
+        read_pose_file(f)
+    f.write_text(JBI.replace("C00001=1012.500,", "C00001="))
+    with pytest.raises(InputError, match="line 10: C00001 has 5 values"):
+        read_pose_file(f)
+    # a Yaskawa CSV (one station per file works the same)
+    c = tmp_path / "y.csv"
+    c.write_text("x,y,z,rx,ry,rz\n100,200,300,0,0,90\n")
+    np.testing.assert_allclose(read_pose_file(c, "yaskawa").poses[0].R, RZ90, atol=1e-12)
+
+
+def test_folder_of_station_files_pairs_by_number(tmp_path):
+    from cutterpose.robot.pose_files import pair_with_images, read_pose_set
+
+    for k in (0, 2, 10):
+        (tmp_path / f"{k}.yaml").write_text(_ros_text([0.5 + k / 1000, 0, 0.8], [0, 0, 0, 1]))
+    s = read_pose_set(tmp_path)
+    assert s.names == ["0", "2", "10"]  # natural order, not 0, 10, 2
+    np.testing.assert_allclose([p.t_mm[0] for p in s.poses], [500, 502, 510])
+    # images sorted by name (0, 10, 2) get their own station's pose
+    assert pair_with_images(["0.png", "10.png", "2.png"], s.names) == [0, 2, 1]
+    assert pair_with_images(["image-1.png", "image-2.png"],
+                            ["pose_fPe_2", "pose_fPe_1"]) == [1, 0]
+    assert pair_with_images(["a.png", "b.png"], ["p", "q"]) == [0, 1]  # no numbers: in order
+    with pytest.raises(InputError, match="3 images but 2 robot poses"):
+        pair_with_images(["a.png", "b.png", "c.png"], ["p", "q"])
+
+
+@pytest.mark.parametrize("name, text, match", [
+    ("r.csv", "# convention: kuka\nx,y,z,a,b,c\n1,2,3,4,5,6\n1,2,3,4,5\n", "row 2 has 5 values"),
+    ("q.yaml", "x: 0.1\ny: 0\nz: 0\nqx: 0\nqy: 0\nqz: 0\nqw: 2\n", "norm"),
+    ("m.yaml", "x: 0.1\ny: 0\nz: 0\nqx: 0\nqy: 0\nqz: 0\n", "missing 'qw'"),
+    ("s.yaml", "x: 0.1\ny: zero\nz: 0\nqx: 0\nqy: 0\nqz: 0\nqw: 1\n", "'y' is not a number"),
+    ("b.yaml", "x: [0.1\n", "not valid YAML"),
+    ("d.csv", "# convention: ur\n# length_unit: m\n# angle_unit: rad\nx,y,z,rx,ry,rz\n"
+     "1,0,0,0,0,90\n", "degrees read as radians"),
+    ("e.json", "[1, 2]", "no pose convention"),
+])
+def test_malformed_pose_files_are_one_line_errors(tmp_path, name, text, match):
+    from cutterpose.robot.pose_files import read_pose_set
+
+    f = tmp_path / name
+    f.write_text(text)
+    with pytest.raises(InputError, match=match) as e:
+        read_pose_set(f)
+    assert "\n" not in str(e.value)
+
+
+def test_flange_positions_in_the_wrong_unit_are_refused():
+    from cutterpose.robot.pose_files import check_flange_units
+
+    metres_as_mm = [Pose(np.eye(3), [0.7, 0.0, 0.85], "base", "flange")]
+    with pytest.raises(InputError, match="metres read as mm"):
+        check_flange_units(metres_as_mm)
+    mm_as_metres = [Pose(np.eye(3), [700e3, 0.0, 850e3], "base", "flange")]
+    with pytest.raises(InputError, match="mm read as metres"):
+        check_flange_units(mm_as_metres)
+    check_flange_units([Pose(np.eye(3), [700.0, 0.0, 850.0], "base", "flange")])

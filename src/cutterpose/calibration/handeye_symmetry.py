@@ -121,12 +121,14 @@ def resolve_point_orders(A: list[Pose], B: list[list[Pose]],
 
 
 def _majority_gauge(lab: np.ndarray, symmetries: list[np.ndarray]) -> np.ndarray:
-    """Relabel so the most common order is the detector's own: compose every station's order
-    with the inverse of the most common one (the symmetries form a group; a composition outside
-    the given list leaves the labels as they are)."""
+    """Relabel so the most common order (a tie: the first station's) is the detector's own:
+    compose every station's order with the inverse of that one (the symmetries form a group; a
+    composition outside the given list leaves the labels as they are)."""
     counts = np.bincount(lab, minlength=len(symmetries) + 1)
     g = int(np.argmax(counts))
-    if g == 0 or counts[g] == counts[0]:
+    if counts[lab[0]] == counts[g]:
+        g = int(lab[0])  # a tie: the first station keeps the detector's order
+    if g == 0:
         return lab
     N = len(symmetries[0])
     perms = [np.arange(N)] + [np.asarray(s) for s in symmetries]
