@@ -137,7 +137,7 @@ def test_cli_robot_cell_and_handeye(tmp_path, cam_quarter):
     res = runner.invoke(app, ["handeye", str(cell_dir), "--robot-poses",
                               str(tmp_path / "short.csv"), "--camera", str(cam_file),
                               "--out", str(out)])
-    assert res.exit_code == 2 and "6 target images but 5 robot poses" in res.output
+    assert res.exit_code == 2 and "6 images but 5 robot poses" in res.output
 
 
 def test_cli_render_plate_at_given_poses(tmp_path, cam_quarter):

@@ -88,6 +88,7 @@ from .handeye_problem import (
     refine_xy,
     solve_pnp,
 )
+from .handeye_report import plate_spread
 from .handeye_starts import (
     MIN_PAIR_ROTATION_DEG,
     NUMPY_METHODS,
@@ -96,7 +97,7 @@ from .handeye_starts import (
     opencv_start,
     stack_poses,
 )
-from .handeye_symmetry import resolve_point_orders
+from .handeye_symmetry import motion_mismatch, resolve_point_orders
 from .plate import CirclePlate
 
 __all__ = ["HandEye", "HandEyeResult", "StationResidual", "calibrate_handeye",
@@ -144,11 +145,14 @@ class StationResidual:
     distrust: str = ""
     order: str = "as detected"   #: the point order used (a symmetric target: chosen)
     order_margin: float = math.inf  #: how clearly the motion chose it (inf: no choice)
+    motion_deg: float = 0.0      #: robot vs camera motion to the other stations: angle
+    motion_mm: float = 0.0       #: ... and translation along the axis (medians; X-free)
 
     def to_dict(self) -> dict:
         return {"name": self.name, "rms_px": self.rms_px, "position_mm": self.position_mm,
                 "angle_deg": self.angle_deg, "chi2": self.chi2, "used": self.used,
                 "distrust": self.distrust, "order": self.order,
+                "motion_mismatch_deg": self.motion_deg, "motion_mismatch_mm": self.motion_mm,
                 "order_margin": self.order_margin if math.isfinite(self.order_margin)
                 else None}
 
@@ -455,6 +459,7 @@ def _station_figures(prob, A, B, X, Y, names, used, limit_q, ang, orders) -> lis
     raw = (prob.project(X, Y) - prob.obs).reshape(n, N, 2)
     rms = np.sqrt(np.mean(np.sum(raw ** 2, axis=2), axis=1))
     c2 = np.sum(prob.residuals(X, Y) ** 2, axis=1)
+    m_deg, m_mm = motion_mismatch(A, B)
     stations = []
     for k in range(n):
         Yk = A[k] @ X @ B[k]
@@ -462,6 +467,7 @@ def _station_figures(prob, A, B, X, Y, names, used, limit_q, ang, orders) -> lis
                              float(geodesic_deg(Yk.R, Y.R)), float(c2[k]), bool(used[k]))
         st.order = "as detected" if orders.labels[k] == 0 else f"symmetry {orders.labels[k]}"
         st.order_margin = float(orders.margins[k])
+        st.motion_deg, st.motion_mm = float(m_deg[k]), float(m_mm[k])
         why = []
         if not used[k]:
             why.append(f"outlier (chi-square {c2[k]:.0f}, limit "
@@ -476,63 +482,6 @@ def _station_figures(prob, A, B, X, Y, names, used, limit_q, ang, orders) -> lis
         st.distrust = "; ".join(why)
         stations.append(st)
     return stations
-
-
-def plate_spread(prob: HandEyeProblem, A: list[Pose], B: list[Pose], X: Pose, Y: Pose,
-                 used: np.ndarray) -> dict:
-    """The target's base-frame pose over the stations, ``Y_i = A_i X B_i``, against ``Y``.
-
-    Measured: RMS and largest position (mm) and angle (deg) deviation of the used stations.
-    Explained: the RMS expected from the robot's stated pose error (``C_robot``, per axis) and
-    the pixel noise (``sigma_px^2 (G_i^T G_i)^-1``, the same flange-pose coordinates): a flange
-    error ``(dt, dphi)`` (base axes) moves ``Y_i`` by ``dt + dphi x (t_Y - t_A_i)`` and turns it
-    by ``dphi``. Robot error estimate: the per-axis 1-sigma position and angle error of the
-    robot that would explain the measured spread (what is left after the pixel noise).
-    """
-    prob.set_weights(X, Y)
-    u = np.flatnonzero(used)
-    Yk = [A[k] @ X @ B[k] for k in u]
-    dpos = np.array([np.linalg.norm(y.t_mm - Y.t_mm) for y in Yk])
-    dang = np.array([geodesic_deg(y.R, Y.R) for y in Yk])
-    Cr = np.diag([prob.rep_mm ** 2] * 3 + [prob.rep_rad ** 2] * 3)
-    e_pos, e_ang, pix_pos, pix_ang, lever2 = [], [], [], [], []
-    for k in u:
-        G = prob.G[k]
-        Cp = prob.sigma_px ** 2 * np.linalg.pinv(G.T @ G)
-        L = Y.t_mm - A[k].t_mm
-        M = np.concatenate([np.eye(3), -_skew3(L)], axis=1)
-        pix_pos.append(np.trace(M @ Cp @ M.T))
-        pix_ang.append(np.trace(Cp[3:, 3:]))
-        e_pos.append(np.trace(M @ (Cr + Cp) @ M.T))
-        e_ang.append(np.trace((Cr + Cp)[3:, 3:]))
-        lever2.append(L @ L)
-    rms = lambda v: float(np.sqrt(np.mean(np.square(v))))  # noqa: E731
-    meas_pos, meas_ang = rms(dpos), rms(dang)
-    exp_pos = float(np.sqrt(np.mean(e_pos)))
-    exp_ang = math.degrees(float(np.sqrt(np.mean(e_ang))))
-    sig_phi = math.sqrt(max(math.radians(meas_ang) ** 2 - np.mean(pix_ang), 0.0) / 3.0)
-    sig_t = math.sqrt(max(meas_pos ** 2 - np.mean(pix_pos)
-                          - 2.0 * sig_phi ** 2 * np.mean(lever2), 0.0) / 3.0)
-    ratio = max(meas_pos / max(exp_pos, 1e-12), meas_ang / max(exp_ang, 1e-12))
-    consistent = ratio <= 1.5
-    verdict = (f"consistent with the robot's stated error ({meas_pos:.3f} mm / {meas_ang:.4f} "
-               f"deg RMS, {exp_pos:.3f} mm / {exp_ang:.4f} deg expected)" if consistent else
-               f"spread {ratio:.1f}x what the robot's stated error ({prob.rep_mm:g} mm / "
-               f"{math.degrees(prob.rep_rad):g} deg per axis) and the pixel noise explain: "
-               f"{meas_pos:.3f} mm / {meas_ang:.4f} deg RMS against {exp_pos:.3f} mm / "
-               f"{exp_ang:.4f} deg; a robot error of ~{sig_t:.2f} mm / "
-               f"{math.degrees(sig_phi):.3f} deg per axis would explain it (the robot's "
-               "absolute accuracy, the intrinsics, or poses read while moving)")
-    return {"position_rms_mm": meas_pos, "position_max_mm": float(dpos.max()),
-            "angle_rms_deg": meas_ang, "angle_max_deg": float(dang.max()),
-            "explained_position_rms_mm": exp_pos, "explained_angle_rms_deg": exp_ang,
-            "robot_error_estimate_mm": sig_t, "robot_error_estimate_deg": math.degrees(sig_phi),
-            "consistent": bool(consistent), "verdict": verdict}
-
-
-def _skew3(v) -> np.ndarray:
-    x, y, z = v
-    return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
 
 
 def _verdict(r: HandEyeResult, ang: np.ndarray, max_pos: float, max_ang: float):

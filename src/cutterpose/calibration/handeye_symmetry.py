@@ -34,7 +34,7 @@ from scipy.spatial.transform import Rotation
 
 from ..geometry.pose import Pose
 
-__all__ = ["OrderChoice", "resolve_point_orders", "screw_invariants"]
+__all__ = ["OrderChoice", "resolve_point_orders", "screw_invariants", "motion_mismatch"]
 
 ANGLE_SCALE_DEG = 1.0
 PITCH_SCALE_MM = 10.0
@@ -61,8 +61,9 @@ def screw_invariants(R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarr
     return np.degrees(th).reshape(shape), d.reshape(shape)
 
 
-def _pair_costs(A: list[Pose], B: list[list[Pose]]) -> np.ndarray:
-    """cost[i, j, a, b]: mismatch of the motion i -> j with station i in order a, j in b."""
+def _pair_mismatch(A: list[Pose], B: list[list[Pose]]):
+    """``|dtheta|`` [deg] and ``|dd|`` [mm] of the motion i -> j between robot and camera with
+    station i in order a, j in b: arrays (i, j, a, b)."""
     RA = np.stack([a.R for a in A])
     tA = np.stack([a.t_mm for a in A])
     RB = np.stack([[b.R for b in row] for row in B])          # (n, m, 3, 3)
@@ -75,9 +76,32 @@ def _pair_costs(A: list[Pose], B: list[list[Pose]]) -> np.ndarray:
     RMB = np.einsum("jbpk,iaqk->iajbpq", RB, RB)               # (n, m, n, m, 3, 3)
     tMB = tB[None, None, :, :, :] - np.einsum("iajbpq,iaq->iajbp", RMB, tB)
     thB, dB = screw_invariants(RMB, tMB)
-    cost = (np.abs(thB - thA[:, None, :, None]) / ANGLE_SCALE_DEG
-            + np.abs(dB - dA[:, None, :, None]) / PITCH_SCALE_MM)
-    return cost.transpose(0, 2, 1, 3)  # (i, j, a, b)
+    dth = np.abs(thB - thA[:, None, :, None]).transpose(0, 2, 1, 3)
+    dd = np.abs(dB - dA[:, None, :, None]).transpose(0, 2, 1, 3)
+    return dth, dd
+
+
+def _pair_costs(A: list[Pose], B: list[list[Pose]]) -> np.ndarray:
+    """cost[i, j, a, b]: mismatch of the motion i -> j with station i in order a, j in b."""
+    dth, dd = _pair_mismatch(A, B)
+    return dth / ANGLE_SCALE_DEG + dd / PITCH_SCALE_MM
+
+
+def motion_mismatch(A: list[Pose], B: list[Pose]) -> tuple[np.ndarray, np.ndarray]:
+    """Per station, the median over the other stations of how much the robot's and the
+    camera's motion disagree: rotation angle [deg] and translation along the axis [mm].
+
+    Independent of ``X``: a station whose robot pose or image is wrong stands out here before
+    any calibration (and the medians bound what any hand-eye method can reach).
+    """
+    n = len(A)
+    if n < 2:
+        return np.zeros(n), np.zeros(n)
+    dth, dd = _pair_mismatch(A, [[b] for b in B])
+    off = ~np.eye(n, dtype=bool)
+    th = np.array([np.median(dth[i, off[i], 0, 0]) for i in range(n)])
+    d = np.array([np.median(dd[i, off[i], 0, 0]) for i in range(n)])
+    return th, d
 
 
 def resolve_point_orders(A: list[Pose], B: list[list[Pose]],
