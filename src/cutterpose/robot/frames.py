@@ -34,17 +34,12 @@ from scipy.spatial.transform import Rotation
 
 from ..errors import InputError
 from ..geometry.pose import Pose
+from ..geometry.se3 import skew
 
 __all__ = ["FRAMES", "PoseCov", "skew", "cov_from_own_axes", "cov_to_own_axes",
            "cov_from_dof", "euler_rate_matrix", "bound_3sigma"]
 
 FRAMES = ("base", "flange", "cam", "plate", "holder", "grasp")
-
-
-def skew(v) -> np.ndarray:
-    """``[v]x``, the 3x3 matrix of ``v x .``."""
-    x, y, z = np.asarray(v, float)
-    return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
 
 
 def _check_cov(cov, where: str = "covariance") -> np.ndarray:

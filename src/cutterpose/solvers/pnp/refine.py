@@ -38,6 +38,7 @@ from collections.abc import Callable
 import numpy as np
 from scipy.optimize import least_squares
 
+from ...geometry.se3 import skew
 from ..estimate import PoseEstimate
 from .base import Candidate, is_planar, model_points, plane_frame, select
 
@@ -48,18 +49,10 @@ _SAME_ROT = 1e-6     # max |R_a - R_b| entry
 _SAME_T_REL = 1e-6   # |t_a - t_b| / |t_b|
 
 
-def _skew(w: np.ndarray) -> np.ndarray:
-    """``[w]_x`` for (..., 3) vectors."""
-    z = np.zeros(w.shape[:-1])
-    return np.stack([np.stack([z, -w[..., 2], w[..., 1]], -1),
-                     np.stack([w[..., 2], z, -w[..., 0]], -1),
-                     np.stack([-w[..., 1], w[..., 0], z], -1)], -2)
-
-
 def _exp_and_jl(w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Rodrigues' ``Exp(w)`` and the left Jacobian ``J_l(w)``."""
     a2 = float(w @ w)
-    W = _skew(w)
+    W = skew(w)
     W2 = W @ W
     if a2 < 1e-12:
         # series to second order: exact to double precision below |w| = 1e-6
@@ -109,7 +102,7 @@ def refine_pose(R0: np.ndarray, t0: np.ndarray, P: np.ndarray, ideal_px: np.ndar
         dp[:, 0, 2] = -(fx * X[:, 0] + s * X[:, 1]) * iz * iz
         dp[:, 1, 1] = fy * iz
         dp[:, 1, 2] = -fy * X[:, 1] * iz * iz
-        dXdw = -_skew(Y) @ J  # (n, 3, 3)
+        dXdw = -skew(Y) @ J  # (n, 3, 3)
         out = np.empty((n, 2, 6))
         out[:, :, :3] = dp @ dXdw
         out[:, :, 3:] = dp
