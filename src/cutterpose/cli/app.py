@@ -10,6 +10,10 @@ import typer
 
 from ..errors import CutterposeError
 
+#: The help panels of ``measure`` and the commands that share its options.
+IMAGE, CAMERA, VERDICT, ROBOT, OUTPUT = ("Image", "Camera and holder", "Method and verdict",
+                                         "Robot", "Output")
+
 app = typer.Typer(add_completion=False, no_args_is_help=True,
                   help="Pose of a disc cutter holder from one camera image.")
 experiment_app = typer.Typer(no_args_is_help=True, help="Run the paper's experiments.")
@@ -42,12 +46,10 @@ def log(message: str) -> None:
     typer.echo(message, err=True)
 
 
-def edge_break_option():
-    return typer.Option(None, "--edge-break-mm", help="The pocket edge's largest break (mm) "
-                        "for the corner methods (dm, dm+, PnP), which see the broken edge, not "
-                        "the design edge: their verdict carries the pose shift of an edge seen "
-                        "anywhere up to this far outside it (default: not known, 1.5 mm; 0: a "
-                        "sharp edge). dm+b and dm+r measure the break and ignore it.")
+def edge_break_option(panel: str | None = None):
+    return typer.Option(None, "--edge-break-mm", metavar="MM", rich_help_panel=panel,
+                        help="Largest edge break, for dm, dm+ and PnP (default 1.5; 0: "
+                        "sharp).")
 
 
 def holder_render_option():
@@ -57,38 +59,58 @@ def holder_render_option():
                         "bundled holder); truth.json carries it, so experiments measure with it.")
 
 
-def pixel_format_option():
+def pixel_format_option(panel: str | None = None):
     """``--pixel-format`` of raw frames, the same in ``measure`` and ``track``."""
-    return typer.Option(None, "--pixel-format", help="Raw frames' pixel format: Mono8 "
-                        "(default), Mono10, Mono12, Mono14, Mono16 (2 bytes, LSB-aligned), "
-                        "Mono12Packed (GigE Vision) or Mono12p (PFNC); a sidecar's "
-                        "pixel_format is used when this is not given.")
+    return typer.Option(None, "--pixel-format", metavar="FORMAT", rich_help_panel=panel,
+                        help="Raw frames: Mono8 (default), Mono10..Mono16 (LSB-aligned), "
+                        "Mono12Packed, Mono12p.")
 
 
-def budget_mm_option():
-    """``--budget-tol-mm``: the measurement's own verdict (not the grasp's)."""
-    return typer.Option(None, "--budget-tol-mm", help="Refuse the measurement when its error "
-                        "budget's 3-sigma position at the grasp point (the pocket's centre) "
-                        "exceeds this (mm; default the robot's 1 mm).")
+def budget_mm_option(panel: str | None = None):
+    """``--verdict-tol-mm``: the measurement's own verdict (not the grasp's)."""
+    return typer.Option(None, "--verdict-tol-mm", metavar="MM", rich_help_panel=panel,
+                        help="Refuse a pose whose 3-sigma position error at the grasp point "
+                        "exceeds this (default 1).")
 
 
-def budget_deg_option():
-    return typer.Option(None, "--budget-tol-deg", help="Refuse the measurement when its error "
-                        "budget's 3-sigma rotation exceeds this (deg; default 0.3: 1 mm at the "
-                        "pocket's ends, 200 mm from the origin; `experiment acceptance` shows "
-                        "what another value accepts on a measured set).")
+def budget_deg_option(panel: str | None = None):
+    """``--verdict-tol-deg``: the measurement's own verdict (the grasp's is ``--grasp-tol-deg``)."""
+    return typer.Option(None, "--verdict-tol-deg", metavar="DEG", rich_help_panel=panel,
+                        help="Refuse a pose whose 3-sigma rotation exceeds this (default "
+                        "0.3).")
 
 
-def budget_tolerance(position_mm: float | None, angle_deg: float | None):
-    """The error budget's :class:`~cutterpose.budget.Tolerance` with the options given."""
+def old_name_option(name: str):
+    """A former option name, hidden from the help, kept working so that scripts do not break."""
+    return typer.Option(None, name, hidden=True)
+
+
+def renamed(value, old, name: str, old_name: str):
+    """The value of an option given under its name or under its former name (not both)."""
+    if old is None:
+        return value
+    if value is not None:
+        from ..errors import InputError
+
+        raise InputError(f"{old_name} is the former name of {name}: give one of them")
+    return old
+
+
+def budget_tolerance(position_mm: float | None, angle_deg: float | None,
+                     old_position_mm: float | None = None, old_angle_deg: float | None = None):
+    """The error budget's :class:`~cutterpose.budget.Tolerance` with the options given
+    (``old_*``: the same options under their former names ``--budget-tol-mm/-deg``)."""
     import math
 
     from ..budget import Tolerance
     from ..errors import InputError
 
     given = {}
-    for key, name, v in (("position_mm", "--budget-tol-mm", position_mm),
-                         ("angle_deg", "--budget-tol-deg", angle_deg)):
+    for key, name, v, old_name, old in (
+            ("position_mm", "--verdict-tol-mm", position_mm, "--budget-tol-mm", old_position_mm),
+            ("angle_deg", "--verdict-tol-deg", angle_deg, "--budget-tol-deg", old_angle_deg)):
+        if old is not None:
+            v, name = renamed(v, old, name, old_name), old_name
         if v is not None:
             if not (math.isfinite(v) and v > 0):
                 raise InputError(f"{name} {v}: give a positive number")
@@ -96,10 +118,10 @@ def budget_tolerance(position_mm: float | None, angle_deg: float | None):
     return Tolerance(**given)
 
 
-def edge_look_option():
+def edge_look_option(panel: str | None = None):
     """``--edge-look``, the same in every command that measures with ``dm+b``."""
-    return typer.Option(None, "--edge-look", help="Edge look file from `calibrate-edge-look` "
-                        "(dm+b fits the calibrated look).")
+    return typer.Option(None, "--edge-look", metavar="FILE", rich_help_panel=panel,
+                        help="Edge look from `calibrate-edge-look` (dm+b).")
 
 
 def load_edge_look(path: str | None):

@@ -26,7 +26,7 @@ def calibrate_edge_look_cmd(
                                        "with --poses."),
     out: str = typer.Option(..., "--out", help="Edge look file to write (JSON)."),
     poses: str = typer.Option(None, "--poses", help="T_cam_holder of each image, in order: a "
-                              "pose file (CSV or JSON, cutterpose.robot.poses conventions)."),
+                              "pose file (CSV or JSON, the conventions of docs/robot.md)."),
     camera: str = typer.Option(None, help="table1 (default), synthetic, or a camera file "
                                "(with --poses)."),
     holder: str = typer.Option(None, help="Holder JSON file (with --poses; default: bundled)."),

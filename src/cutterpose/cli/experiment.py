@@ -16,14 +16,16 @@ from .app import (
     friendly,
     load_edge_look,
     log,
+    old_name_option,
 )
 
 
 @experiment_app.command("synthetic")
 @friendly
 def experiment_synthetic(
-    methods: str = typer.Option("opencv-ippe-lm,opencv-sqpnp", help="Comma-separated method "
-                                "names (see `cutterpose methods`)."),
+    methods: str = typer.Option("opencv-ippe-lm,opencv-sqpnp", show_default=False,
+                                help="Comma-separated method names (see `cutterpose methods`; "
+                                "default: opencv-ippe-lm, opencv-sqpnp)."),
     trials: int = typer.Option(1000, min=1, help="Trials per noise level."),
     sigmas: str = typer.Option("0:5:0.5", help="Noise levels in px: start:stop:step or a,b,c."),
     out: str = typer.Option("results/synthetic", help="Output folder."),
@@ -32,7 +34,7 @@ def experiment_synthetic(
     workers: int = typer.Option(1, min=1, help="Worker processes (results are identical)."),
     scheduler: str = typer.Option(None, "--scheduler", help="Run on the Dask distributed "
                                   "cluster at this address (tcp://host:8786) instead of local "
-                                  "processes; needs cutterpose[cluster]."),
+                                  "processes; needs cutterpose\\[cluster]."),
     seed: int = typer.Option(0, help="Base seed of the trial generator."),
     progress: bool = typer.Option(True, help="Show a progress bar on stderr."),
 ):
@@ -53,8 +55,9 @@ def experiment_synthetic(
 @friendly
 def experiment_images_cmd(
     folder: str = typer.Argument(..., help="Image set: a folder with truth.json."),
-    methods: str = typer.Option("dm,dm+,dlt,epnp,rpnp,aspnp,opnp",
-                                help="Comma-separated methods."),
+    methods: str = typer.Option("dm,dm+,dlt,epnp,rpnp,aspnp,opnp", show_default=False,
+                                help="Comma-separated methods (default: dm, dm+, dlt, epnp, "
+                                "rpnp, aspnp, opnp)."),
     out: str = typer.Option("results/images", help="Output folder."),
     workers: int = typer.Option(1, min=1, help="Worker processes."),
     scheduler: str = typer.Option(None, "--scheduler", help="Run on the Dask distributed "
@@ -73,6 +76,8 @@ def experiment_images_cmd(
     edge_look: str = edge_look_option(),
     budget_tol_mm: float = budget_mm_option(),
     budget_tol_deg: float = budget_deg_option(),
+    old_budget_tol_mm: float = old_name_option("--budget-tol-mm"),
+    old_budget_tol_deg: float = old_name_option("--budget-tol-deg"),
 ):
     """Table 2 figures of every method on an image set (trials.csv, summary.md)."""
     from rich.progress import Progress
@@ -88,7 +93,7 @@ def experiment_images_cmd(
                                                         model_fallback="none")}
     if chain not in chains:
         fail(f"--chain must be one of {', '.join(chains)}, got {chain!r}")
-    tol = budget_tolerance(budget_tol_mm, budget_tol_deg)
+    tol = budget_tolerance(budget_tol_mm, budget_tol_deg, old_budget_tol_mm, old_budget_tol_deg)
     with Progress(transient=True) as bar:
         task = bar.add_task("images", total=None)
         from ..pipeline import QualityLimits

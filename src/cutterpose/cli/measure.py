@@ -5,77 +5,100 @@ from __future__ import annotations
 import typer
 
 from .app import (
-    angle_unit_option,
+    CAMERA,
+    IMAGE,
+    OUTPUT,
+    ROBOT,
+    VERDICT,
     app,
     budget_deg_option,
     budget_mm_option,
     budget_tolerance,
     camera_from_option,
-    convention_option,
     edge_break_option,
     edge_look_option,
     fail,
     friendly,
-    length_unit_option,
     load_edge_look,
     log,
+    old_name_option,
     pixel_format_option,
+    renamed,
 )
 
 
 @app.command("measure")
 @friendly
 def measure_cmd(
-    image: str = typer.Argument(..., help="Image of the holder (PNG, JPEG, TIFF...), or a raw "
-                                "frame (.raw with a sidecar <file>.json, or --raw)."),
-    camera: str = typer.Option(None, help="table1 (default), synthetic, or a camera file."),
-    raw: str = typer.Option(None, "--raw", help="Read IMAGE as a raw frame of WIDTHxHEIGHT "
-                            "pixels (as a GigE camera delivers it; Mono8: no decode)."),
-    pixel_format: str = pixel_format_option(),
-    holder: str = typer.Option(None, help="Holder JSON file (default: the bundled holder)."),
-    method: str = typer.Option("dm+b", help="Pose method (cutterpose.methods; dm+b: the design "
-                               "edge's pose from the band across each broken edge; dm+r: from "
-                               "the corners and one radius; dm: the paper's chain)."),
-    overlay: str = typer.Option(None, "--overlay", help="Write an overlay PNG here."),
-    as_json: bool = typer.Option(False, "--json", help="One JSON object on stdout."),
-    chain: str = typer.Option("field", help="Image chain: field (gradient outline, robust "
-                              "lines; default) or paper (section 2.1: threshold 70, contour)."),
-    edge_shape: str = typer.Option("unknown", help="The pocket edge's break as the holder's "
-                                   "drawing gives it: round, chamfer, or unknown (default: dm+b "
-                                   "tells them apart; dm+r's verdict then carries the chamfer's "
-                                   "depth the contour cannot see)."),
-    edge_break_mm: float = edge_break_option(),
-    edge_look: str = edge_look_option(),
-    budget_tol_mm: float = budget_mm_option(),
-    budget_tol_deg: float = budget_deg_option(),
-    distance_mm: float = typer.Option(None, "--distance-mm", help="The measuring station: "
-                                      "camera to holder, mm (default: the paper's 600). The "
-                                      "region search looks for the holder at this size and the "
-                                      "working range (+-20 mm) is centred on it."),
-    corners: bool = typer.Option(False, "--corners", help="Detect the corners even when the "
-                                 "method does not need them (dm+b starts from the pocket "
-                                 "outline: without this its JSON has no corners_px; ~14 ms)."),
-    handeye: str = typer.Option(None, "--handeye", help="handeye.json: also answer in the "
-                                "robot's base frame (needs --flange-pose)."),
-    flange_pose: str = typer.Option(None, "--flange-pose", help="T_base_flange at the "
-                                    "picture: a one-row pose file or x_mm,y_mm,z_mm,qx,qy,qz,"
-                                    "qw inline."),
-    convention: str = convention_option("a --flange-pose file"),
-    length_unit: str = length_unit_option("a --flange-pose file"),
-    angle_unit: str = angle_unit_option("a --flange-pose file"),
-    robot_accuracy_mm: float = typer.Option(0.05, help="Robot position error, mm per axis "
-                                            "(1 sigma)."),
-    robot_accuracy_deg: float = typer.Option(0.01, help="Robot angle error, deg per axis "
-                                             "(1 sigma)."),
-    position_tol_mm: float = typer.Option(1.0, help="Grasp tolerance on the 3-sigma "
-                                          "position bound, mm."),
-    angle_tol_deg: float = typer.Option(None, help="Grasp tolerance on the 3-sigma angle "
-                                        "bound, deg (default: position tolerance at the "
-                                        "17-inch cutter's 216 mm radius, 0.265 deg)."),
+    image: str = typer.Argument(..., metavar="IMAGE", show_default=False,
+                                help="Image file, or a raw frame (--raw)."),
+    raw: str = typer.Option(None, "--raw", metavar="WxH", rich_help_panel=IMAGE,
+                            help="IMAGE is a raw frame of W x H pixels."),
+    pixel_format: str = pixel_format_option(IMAGE),
+    camera: str = typer.Option(None, metavar="FILE", rich_help_panel=CAMERA,
+                               help="Camera file, or table1 (default), synthetic."),
+    holder: str = typer.Option(None, metavar="FILE", rich_help_panel=CAMERA,
+                               help="Holder file (default: the bundled holder)."),
+    distance_mm: float = typer.Option(None, "--distance-mm", metavar="MM",
+                                      rich_help_panel=CAMERA,
+                                      help="Station: camera to holder (default 600)."),
+    method: str = typer.Option("dm+b", metavar="NAME", rich_help_panel=VERDICT,
+                               show_default=False,
+                               help="Pose method (default dm+b; see `methods`)."),
+    edge_look: str = edge_look_option(VERDICT),
+    edge_break_mm: float = edge_break_option(VERDICT),
+    budget_tol_mm: float = budget_mm_option(VERDICT),
+    budget_tol_deg: float = budget_deg_option(VERDICT),
+    handeye: str = typer.Option(None, "--handeye", metavar="FILE", rich_help_panel=ROBOT,
+                                help="Hand-eye file: answer in the robot's base frame too, "
+                                "with the grasp verdict (exit 4: retake)."),
+    flange_pose: str = typer.Option(None, "--flange-pose", metavar="POSE",
+                                    rich_help_panel=ROBOT,
+                                    help="T_base_flange at the picture: a pose file or "
+                                    "x,y,z,qx,qy,qz,qw (mm)."),
+    position_tol_mm: float = typer.Option(None, "--grasp-tol-mm", metavar="MM",
+                                          rich_help_panel=ROBOT,
+                                          help="Grasp: 3-sigma position tolerance (default 1)."),
+    angle_tol_deg: float = typer.Option(None, "--grasp-tol-deg", metavar="DEG",
+                                        rich_help_panel=ROBOT,
+                                        help="Grasp: 3-sigma angle tolerance (default "
+                                        "0.265)."),
+    as_json: bool = typer.Option(False, "--json", rich_help_panel=OUTPUT,
+                                 help="One JSON object on stdout."),
+    overlay: str = typer.Option(None, "--overlay", metavar="PNG", rich_help_panel=OUTPUT,
+                                help="Write a picture of the measurement."),
+    # rarely used: hidden from the help, listed in its last line
+    chain: str = typer.Option("field", hidden=True, help="Image chain: field (gradient outline, "
+                              "robust lines; default) or paper (section 2.1: threshold 70, "
+                              "contour)."),
+    edge_shape: str = typer.Option("unknown", hidden=True, help="The pocket edge's break as "
+                                   "the holder's drawing gives it: round, chamfer, or unknown "
+                                   "(default: dm+b tells them apart; dm+r's verdict then carries "
+                                   "the chamfer's depth the contour cannot see)."),
+    corners: bool = typer.Option(False, "--corners", hidden=True, help="Detect the corners "
+                                 "even when the method does not need them (dm+b starts from the "
+                                 "pocket outline: without this its JSON has no corners_px)."),
+    convention: str = typer.Option(None, hidden=True, help="Pose convention of a --flange-pose "
+                                   "file that does not state it (docs/robot.md)."),
+    length_unit: str = typer.Option(None, hidden=True, help="mm or m, for a --flange-pose "
+                                    "file that does not state it."),
+    angle_unit: str = typer.Option(None, hidden=True, help="deg or rad, for a --flange-pose "
+                                   "file that does not state it."),
+    robot_accuracy_mm: float = typer.Option(0.05, hidden=True, help="Robot position error, mm "
+                                            "per axis (1 sigma)."),
+    robot_accuracy_deg: float = typer.Option(0.01, hidden=True, help="Robot angle error, deg "
+                                             "per axis (1 sigma)."),
+    # former names, kept working
+    old_budget_tol_mm: float = old_name_option("--budget-tol-mm"),
+    old_budget_tol_deg: float = old_name_option("--budget-tol-deg"),
+    old_position_tol_mm: float = old_name_option("--position-tol-mm"),
+    old_angle_tol_deg: float = old_name_option("--angle-tol-deg"),
 ):
-    """Measure the holder's pose in one image (exit 3 when the pose is refused); with
-    --handeye and --flange-pose also in the robot's base frame with the grasp verdict (exit 4
-    on retake)."""
+    """Measure one image: the verdict (ACCEPTED / REFUSED: why), then the pose.
+
+    More: --chain --edge-shape --corners --convention --length-unit --angle-unit
+    --robot-accuracy-mm --robot-accuracy-deg (docs/robot.md).
+    """
     import json as _json
     import time
 
@@ -96,7 +119,11 @@ def measure_cmd(
         robot = (load_handeye(handeye),
                  load_flange_pose(flange_pose, convention, length_unit, angle_unit),
                  RobotAccuracy(robot_accuracy_mm, robot_accuracy_deg),
-                 GraspTolerance(position_tol_mm, angle_deg=angle_tol_deg))
+                 GraspTolerance(
+                     renamed(position_tol_mm, old_position_tol_mm, "--grasp-tol-mm",
+                             "--position-tol-mm") or 1.0,
+                     angle_deg=renamed(angle_tol_deg, old_angle_tol_deg, "--grasp-tol-deg",
+                                       "--angle-tol-deg")))
 
     if chain not in ("field", "paper"):
         fail(f"--chain must be 'field' or 'paper', got {chain!r}")
@@ -107,7 +134,9 @@ def measure_cmd(
 
     m = measure(img, cam, hol, method, params=station_params(cam, chain, distance_mm),
                 limits=QualityLimits(edge_shape=edge_shape, edge_break_mm=edge_break_mm,
-                                     tolerance=budget_tolerance(budget_tol_mm, budget_tol_deg),
+                                     tolerance=budget_tolerance(budget_tol_mm, budget_tol_deg,
+                                                               old_budget_tol_mm,
+                                                               old_budget_tol_deg),
                                      range_center_dof=station_center_dof(distance_mm)),
                 edge_look=look, corners=True if corners else None)
     m.timings_ms = {"load": load_ms} | m.timings_ms

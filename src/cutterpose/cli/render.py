@@ -14,36 +14,47 @@ from .app import (
 )
 
 # robot-cell options shared by render and render-set (issue 11)
-_CELL_HANDEYE = typer.Option(None, "--handeye", help="Robot cell: handeye.json with the true "
-                             "T_flange_cam.")
-_CELL_HOLDER = typer.Option(None, "--holder-base-pose", help="Robot cell: the holder in the "
-                            "base frame, x_mm,y_mm,z_mm,qx,qy,qz,qw or a one-row pose file.")
+_SCENE, _ENGINE, _CELL = "Pose and scene", "Renderer", "Robot cell"
+_CELL_HANDEYE = typer.Option(None, "--handeye", metavar="FILE", rich_help_panel=_CELL,
+                             help="handeye.json with the true T_flange_cam.")
+_CELL_HOLDER = typer.Option(None, "--holder-base-pose", metavar="POSE", rich_help_panel=_CELL,
+                            help="The holder in the base frame: x,y,z,qx,qy,qz,qw (mm) or a "
+                            "one-row pose file.")
 
 
 @app.command("render")
 @friendly
 def render_cmd(
-    out: str = typer.Option(..., "--out", help="Output image (.png)."),
-    pose: str = typer.Option("0,0,0,0,0,600", help="alpha,beta,gamma [deg],X,Y,Z [mm] of the "
-                             "holder in the camera frame."),
-    preset: str = typer.Option(None, help="analytic: easy (default), dim, worn, occluded, "
-                               "blurred or hard; pbr: sharp, new (default) or worn."),
-    seed: int = typer.Option(0, help="Seed of textures, occluders and noise."),
-    camera: str = typer.Option(None, help="table1 (default), synthetic, or a camera file."),
-    holder: str = typer.Option(None, help="Holder JSON file (default: the bundled holder)."),
-    pocket_depth: float = typer.Option(None, help="Pocket depth in mm (preset: 80)."),
+    out: str = typer.Option(..., "--out", metavar="PNG", help="Output image (.png)."),
     truth: bool = typer.Option(True, help="Also write <stem>.truth.json beside the image."),
-    flange_pose: str = typer.Option(None, "--flange-pose", help="Robot cell: the true "
-                                    "T_base_flange (pose file row or x_mm,y_mm,z_mm,qx,qy,qz,"
-                                    "qw); needs --handeye and --holder-base-pose, replaces "
-                                    "--pose."),
+    pose: str = typer.Option("0,0,0,0,0,600", metavar="POSE", rich_help_panel=_SCENE,
+                             help="alpha,beta,gamma (deg),X,Y,Z (mm) of the holder in the "
+                             "camera frame."),
+    preset: str = typer.Option(None, metavar="NAME", rich_help_panel=_SCENE,
+                               help="analytic: easy (default), dim, worn, occluded, blurred or "
+                               "hard; pbr: sharp, new (default) or worn."),
+    seed: int = typer.Option(0, rich_help_panel=_SCENE,
+                             help="Seed of textures, occluders and noise."),
+    camera: str = typer.Option(None, metavar="FILE", rich_help_panel=_SCENE,
+                               help="Camera file, or table1 (default), synthetic."),
+    holder: str = typer.Option(None, metavar="FILE", rich_help_panel=_SCENE,
+                               help="Holder file (default: the bundled holder)."),
+    pocket_depth: float = typer.Option(None, metavar="MM", rich_help_panel=_SCENE,
+                                       help="Pocket depth (preset: 80)."),
+    engine: str = typer.Option("analytic", rich_help_panel=_ENGINE,
+                               help="analytic (closed-form ray casting) or pbr (Mitsuba 3 path "
+                               "tracing of field conditions; extra \\[field])."),
+    spp: int = typer.Option(None, min=1, metavar="N", rich_help_panel=_ENGINE,
+                            help="pbr: samples per pixel (preset: 12)."),
+    variant: str = typer.Option(None, metavar="NAME", rich_help_panel=_ENGINE,
+                                help="pbr: Mitsuba variant (default: llvm_ad_mono if it works "
+                                "here, else scalar_rgb)."),
+    flange_pose: str = typer.Option(None, "--flange-pose", metavar="POSE", rich_help_panel=_CELL,
+                                    help="The true T_base_flange: x,y,z,qx,qy,qz,qw (mm) or a "
+                                    "pose file row; with --handeye and --holder-base-pose, "
+                                    "instead of --pose."),
     handeye: str = _CELL_HANDEYE,
     holder_base_pose: str = _CELL_HOLDER,
-    engine: str = typer.Option("analytic", help="analytic (closed-form ray casting) or pbr "
-                               "(Mitsuba 3 path tracing of field conditions; extra [field])."),
-    spp: int = typer.Option(None, min=1, help="pbr: samples per pixel (preset: 12)."),
-    variant: str = typer.Option(None, help="pbr: Mitsuba variant (default: llvm_ad_mono if "
-                                "it works here, else scalar_rgb)."),
 ):
     """Render one realistic image of the holder at a pose (camera frame), or as the camera on
     a robot's flange sees a holder at a known base-frame pose."""
@@ -125,8 +136,8 @@ def render_set_cmd(
     workers: int = typer.Option(1, min=1, help="Worker processes (the set does not change)."),
     scheduler: str = typer.Option(None, "--scheduler", help="Run on the Dask distributed "
                                   "cluster at this address (tcp://host:8786) instead of local "
-                                  "processes; needs cutterpose[cluster]."),
-    engine: str = typer.Option("analytic", help="analytic or pbr (Mitsuba 3; extra [field])."),
+                                  "processes; needs cutterpose\\[cluster]."),
+    engine: str = typer.Option("analytic", help="analytic or pbr (Mitsuba 3; extra \\[field])."),
     spp: int = typer.Option(None, min=1, help="pbr: samples per pixel (preset: 12)."),
     variant: str = typer.Option(None, help="pbr: Mitsuba variant."),
     resume: bool = typer.Option(False, "--resume", help="pbr: keep the images of an "
@@ -229,7 +240,7 @@ def render_sequence_cmd(
     preset: str = typer.Option(None, help="Render preset: analytic easy (default), dim, worn, "
                                "field, new, rounded, ...; pbr sharp, new (default), worn."),
     engine: str = typer.Option("analytic", help="analytic or pbr (Mitsuba 3 path tracing, "
-                               "extra [field]; one process)."),
+                               "extra \\[field]; one process)."),
     spp: int = typer.Option(None, min=1, help="pbr: samples per pixel (preset: 12)."),
     seed: int = typer.Option(0, help="Seed of the surface and the noise."),
     camera: str = typer.Option(None, help="table1 (default), synthetic, or a camera file."),

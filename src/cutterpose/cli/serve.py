@@ -19,7 +19,7 @@ app.add_typer(records_app, name="records")
 @friendly
 def serve_cmd(
     config: str = typer.Option(None, "--config", help="Cell file (TOML); default: the bundled "
-                               "Table 1 cell (cutterpose/data/cell_table1.toml)."),
+                               "Table 1 cell (data/cell_table1.toml in the package)."),
     host: str = typer.Option("127.0.0.1", help="Address to bind (0.0.0.0: every interface; "
                              "then use TLS and a strong token)."),
     port: int = typer.Option(8000, min=0, max=65535, help="Port."),
