@@ -203,12 +203,22 @@ class CircleGridTarget(Target):
         return (P[:, 0].min() - m, P[:, 0].max() + m, P[:, 1].min() - m, P[:, 1].max() + m)
 
     def darkness(self, x_mm, y_mm, blur_mm):
-        from scipy.spatial import cKDTree
-
         x, y = np.asarray(x_mm, float), np.asarray(y_mm, float)
-        P = self.points_target_mm[:, :2]
-        dist, k = cKDTree(P).query(np.stack([x.ravel(), y.ravel()], 1))
-        d = (dist - self.radii_mm[k]).reshape(x.shape)
+        s, r = self.spacing_mm, 0.5 * self.diameter_mm
+        # distance to the nearest circle edge, lattice by lattice: a symmetric grid is one
+        # lattice; an asymmetric one is two (even rows at (2 j s, 2 k s), odd rows shifted s)
+        lattices = ([(0.0, 0.0, 2 * s, 2 * s, self.cols, (self.rows + 1) // 2),
+                     (s, s, 2 * s, 2 * s, self.cols, self.rows // 2)] if self.asymmetric
+                    else [(0.0, 0.0, s, s, self.cols, self.rows)])
+        d = np.full(x.shape, np.inf)
+        for ox, oy, sx, sy, nx, ny in lattices:
+            if ny == 0:
+                continue
+            j = np.clip(np.rint((x - ox) / sx), 0, nx - 1)
+            i = np.clip(np.rint((y - oy) / sy), 0, ny - 1)
+            d = np.minimum(d, np.hypot(x - ox - j * sx, y - oy - i * sy) - r)
+        if self.origin_dot:  # the larger circle of point 0 at the origin covers its own
+            d = np.minimum(d, np.hypot(x, y) - 0.5 * self.origin_diameter_mm)
         circle = np.clip(0.5 - d / np.maximum(blur_mm, 1e-9), 0.0, 1.0)
         return 1.0 - circle if self.light else circle
 
@@ -232,11 +242,15 @@ class CircleGridTarget(Target):
         pts = np.where(ok[:, None], centres, rough)  # order on all points; drop failed later
         score = None
         if self.origin_dot:
+            # the dot labelled 0 against its 3 nearest neighbours on the target (perspective
+            # changes sizes across the target, hardly between neighbours)
             area = np.nan_to_num(dark_blob_areas(g, rough, 1.5 * half), nan=0.0)
-            med = float(np.median(area))
+            P = self.points_target_mm[:, :2]
+            near = np.argsort(np.linalg.norm(P - P[0], axis=1))[1:4]
 
             def score(ids):
-                return area[int(np.flatnonzero(ids == 0)[0])] / max(med, 1e-9)
+                where = np.argsort(ids)  # image index of each object point
+                return area[where[0]] / max(float(np.median(area[where[near]])), 1e-9)
 
         perms = symmetry_permutations(self.points_target_mm[:, :2])
         ids, amb, why = choose_order(self.points_target_mm, pts, perms, score,

@@ -237,6 +237,10 @@ class CalibrationResult:
     poses : plate poses of the used images.
     used : names of the images used; skipped : name -> reason of the images left out.
     uncorrected : the same figures before the ellipse-centre bias correction (or None).
+    views : per used image ``{name, ids, points_px, residuals_px, rotation_ambiguity_deg}``
+        (residuals = projected - measured, after the bias correction), or None.
+    flagged : name -> why, of the used images whose residuals stand out.
+    target, model, coefficients, image_size_px : what was calibrated, and how.
     """
 
     camera: Camera
@@ -247,13 +251,30 @@ class CalibrationResult:
     used: list
     skipped: dict = field(default_factory=dict)
     uncorrected: dict | None = None
+    views: list | None = None
+    flagged: dict = field(default_factory=dict)
+    target: str | None = None
+    model: str | None = None
+    coefficients: list | None = None
+    image_size_px: tuple | None = None
 
     def to_dict(self) -> dict:
-        return {"camera": self.camera.to_dict(), "rms_px": self.rms_px,
-                "per_image_rms_px": dict(zip(self.used, self.per_image_rms_px)),
-                "std": self.std, "skipped": self.skipped,
-                "plate_poses": {n: p.to_dict() for n, p in zip(self.used, self.poses)},
-                "uncorrected": self.uncorrected}
+        d = {"camera": self.camera.to_dict(), "rms_px": self.rms_px,
+             "per_image_rms_px": dict(zip(self.used, self.per_image_rms_px)),
+             "std": self.std, "skipped": self.skipped,
+             "plate_poses": {n: p.to_dict() for n, p in zip(self.used, self.poses)},
+             "uncorrected": self.uncorrected}
+        if self.target is not None:
+            d.update(target=self.target, model=self.model, coefficients=self.coefficients,
+                     image_size_px=self.image_size_px, flagged=self.flagged)
+        if self.views is not None:
+            d["images"] = {v["name"]: {
+                "rms_px": float(np.sqrt(np.mean(np.sum(v["residuals_px"] ** 2, axis=1)))),
+                "points": int(len(v["ids"])),
+                "max_residual_px": float(np.sqrt(np.max(np.sum(v["residuals_px"] ** 2, 1)))),
+                "rotation_ambiguity_deg": int(v["rotation_ambiguity_deg"]),
+                "flagged": self.flagged.get(v["name"])} for v in self.views}
+        return d
 
 
 def _rms(res: np.ndarray) -> tuple[float, list]:

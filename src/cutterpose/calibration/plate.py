@@ -87,6 +87,17 @@ class CirclePlate:
         return np.stack([x, y, np.zeros_like(x)], axis=1).astype(float)
 
     @property
+    def points_target_mm(self) -> np.ndarray:
+        """Same as :attr:`points_mm` (the name every calibration target uses)."""
+        return self.points_mm
+
+    @property
+    def bounds_mm(self) -> tuple[float, float, float, float]:
+        """(x_min, x_max, y_min, y_max) of the plate's outer edge."""
+        ex, ey = self.half_extent_mm
+        return (-ex, ex, -ey, ey)
+
+    @property
     def half_extent_mm(self) -> tuple[float, float]:
         """Half-width (x) and half-height (y) of the plate's outer edge."""
         s = self.spacing_mm
@@ -220,11 +231,14 @@ def apply_sensor_effects(image: np.ndarray, rng: np.random.Generator,
     return add_sensor_noise(defocus(image, s.defocus_sigma_px, s.defocus_kernel), s, rng)
 
 
-def render_plate(camera: Camera, pose: Pose, plate: CirclePlate | None = None, *,
+def render_plate(camera: Camera, pose: Pose, plate=None, *,
                  settings=None, light: float = 215.0, dark: float = 30.0,
                  background: float = 90.0, rng: np.random.Generator | None = None,
                  strip_rows: int = 256) -> np.ndarray:
     """Render the plate at ``pose`` (plate frame in camera frame) through ``camera``.
+
+    ``plate`` is a :class:`CirclePlate` (default) or any calibration target
+    (:class:`cutterpose.calibration.targets.Target`: ``bounds_mm``, ``darkness``, ``outline_mm``).
 
     Every pixel centre is traced back: observed pixel -> ``camera.pixel_to_ray`` (undoes the
     lens distortion exactly) -> intersection with the plate plane -> plate coordinates, where
@@ -238,7 +252,7 @@ def render_plate(camera: Camera, pose: Pose, plate: CirclePlate | None = None, *
     -------
     (H, W) uint8 image.
     """
-    plate = plate or CirclePlate()
+    plate = plate if plate is not None else CirclePlate()
     rng = rng if rng is not None else np.random.default_rng(0)
     w, h = camera.image_size_px
     img = np.full((h, w), background, np.float32)
@@ -254,7 +268,7 @@ def render_plate(camera: Camera, pose: Pose, plate: CirclePlate | None = None, *
             u0, v0, u1, v1 = 0, 0, w - 1, h - 1
         R, t = pose.R, pose.t_mm
         n = R[:, 2]  # plate normal in the camera frame
-        ex, ey = plate.half_extent_mm
+        bx0, bx1, by0, by1 = plate.bounds_mm
         for vs in range(v0, v1 + 1, strip_rows):
             ve = min(vs + strip_rows, v1 + 1)
             # one extra row/col for the finite-difference footprint
@@ -270,10 +284,11 @@ def render_plate(camera: Camera, pose: Pose, plate: CirclePlate | None = None, *
             dxv = np.hypot(np.diff(x, axis=0)[:, :-1], np.diff(y, axis=0)[:, :-1])
             foot = np.sqrt(dxu * dxv)
             x, y, lam = x[:-1, :-1], y[:-1, :-1], lam[:-1, :-1]
-            on = np.isfinite(x) & (lam > 0) & (np.abs(x) <= ex) & (np.abs(y) <= ey)
+            on = np.isfinite(x) & (lam > 0) & (x >= bx0) & (x <= bx1) & (y >= by0) & (y <= by1)
             dk = plate.darkness(np.nan_to_num(x), np.nan_to_num(y), np.nan_to_num(foot, nan=1.0))
             # anti-alias the plate's own edge against the background too
-            d_edge = np.maximum(np.abs(np.nan_to_num(x)) - ex, np.abs(np.nan_to_num(y)) - ey)
+            xx, yy = np.nan_to_num(x), np.nan_to_num(y)
+            d_edge = np.maximum.reduce([bx0 - xx, xx - bx1, by0 - yy, yy - by1])
             cover = np.clip(0.5 - d_edge / np.maximum(np.nan_to_num(foot, nan=1.0), 1e-9), 0, 1)
             cover = np.where(np.isfinite(x) & (lam > 0), cover, 0.0)
             val = light + (dark - light) * dk
@@ -282,7 +297,23 @@ def render_plate(camera: Camera, pose: Pose, plate: CirclePlate | None = None, *
     return apply_sensor_effects(img, rng, settings)
 
 
-def sample_plate_poses(camera: Camera, count: int, plate: CirclePlate | None = None, *,
+def _keep_in_view(plate):
+    """Target points that must be inside the image, the size (mm) of its smallest feature and
+    the fewest pixels that feature needs."""
+    if isinstance(plate, CirclePlate):
+        probe = np.concatenate([plate.mark_vertices_mm, np.zeros((3, 1))], axis=1)
+        return (np.concatenate([plate.circle_outline_mm(16).reshape(-1, 3), probe]),
+                plate.diameter_mm, 6.0)
+    circles = plate.circle_outline_mm(16)
+    if circles is not None:
+        return circles.reshape(-1, 3), float(getattr(plate, "diameter_mm", 1.0)), 6.0
+    marker = getattr(plate, "marker_mm", None)
+    if marker is not None:  # ArUco markers need ~4 px per bit
+        return plate.outline_mm(8), float(marker), 28.0
+    return plate.outline_mm(8), float(getattr(plate, "square_mm", 1.0)), 8.0
+
+
+def sample_plate_poses(camera: Camera, count: int, plate=None, *,
                        distance_mm: tuple[float, float] = (400.0, 700.0),
                        tilt_deg: tuple[float, float] = (20.0, 45.0),
                        seed: int = 0, margin_px: float = 10.0,
@@ -297,11 +328,12 @@ def sample_plate_poses(camera: Camera, count: int, plate: CirclePlate | None = N
     Without tilt Zhang's method is degenerate, and without circles near the corners kappa and
     f cannot be told apart.
     """
-    plate = plate or CirclePlate()
+    plate = plate if plate is not None else CirclePlate()
     rng = np.random.default_rng(seed)
     w, h = camera.image_size_px
-    r_mm = 0.5 * plate.diameter_mm
-    probe = np.concatenate([plate.mark_vertices_mm, np.zeros((3, 1))], axis=1)
+    pts, feature_mm, min_px = _keep_in_view(plate)
+    x0, x1, y0, y1 = plate.bounds_mm
+    centre = np.array([0.5 * (x0 + x1), 0.5 * (y0 + y1), 0.0])
     poses: list[Pose] = []
     from scipy.spatial.transform import Rotation
 
@@ -321,37 +353,45 @@ def sample_plate_poses(camera: Camera, count: int, plate: CirclePlate | None = N
         z = rng.uniform(*distance_mm)
         target = np.array([rng.uniform(0.1, 0.9) * w, rng.uniform(0.1, 0.9) * h])
         ray = camera.pixel_to_ray(target)
-        t = ray / ray[2] * z
+        t = ray / ray[2] * z - R @ centre  # the target's centre on that ray
         pose = Pose(R, t, "cam", "plate")
-        pts = np.concatenate([plate.circle_outline_mm(16).reshape(-1, 3), probe])
         px = camera.project(pose.apply(pts))
         if not np.all(np.isfinite(px)) or not np.all(camera.in_image(px, margin_px)):
             continue
         # the plate must face the camera
         if (R[:, 2] @ t) <= 0:
             continue
-        # circles must stay a few pixels wide
+        # circles (markers, squares) must stay a few pixels wide
         f = camera.focal_px
-        if 2 * r_mm / np.linalg.norm(t) * f * np.cos(tilt) < 6:
+        if feature_mm / np.linalg.norm(t + R @ centre) * f * np.cos(tilt) < min_px:
             continue
         poses.append(pose)
     return poses
 
 
-def ellipse_center_bias_px(camera: Camera, pose: Pose, plate: CirclePlate,
-                           n_edge: int = 64) -> np.ndarray:
+def ellipse_center_bias_px(camera: Camera, pose: Pose, plate, n_edge: int = 64,
+                           ids=None) -> np.ndarray:
     """Offset of each circle's image-ellipse centre from the image of its true centre.
 
     Under perspective a circle projects to an ellipse whose centre is not the projection of the
     circle's centre (the near half of the circle looks bigger); lens distortion adds to it. The
     edge of every circle is projected through ``camera`` and fitted with an ellipse (least
     squares, ``cv2.fitEllipse``); the result is ``centre(fitted ellipse) - project(centre)``,
-    shape (rows*cols, 2) in pixels. Subtracting it from measured ellipse centres removes the bias.
+    shape (n, 2) in pixels. Subtracting it from measured ellipse centres removes the bias.
+
+    ``plate`` is a :class:`CirclePlate` or any circle target (``points_target_mm`` and
+    ``circle_outline_mm``); ``ids`` selects its circles (default: all).
     """
     import cv2
 
-    edge = camera.project(pose.apply(plate.circle_outline_mm(n_edge)))
-    ctr = camera.project(pose.apply(plate.points_mm))
+    pts = getattr(plate, "points_target_mm", None)
+    pts = plate.points_mm if pts is None else pts
+    outline = plate.circle_outline_mm(n_edge)
+    if ids is not None:
+        ids = np.asarray(ids, int)
+        pts, outline = pts[ids], outline[ids]
+    edge = camera.project(pose.apply(outline))
+    ctr = camera.project(pose.apply(pts))
     bias = np.full_like(ctr, np.nan)
     for k in range(len(ctr)):
         e = edge[k]

@@ -411,8 +411,11 @@ def choose_order(points_xy_target: np.ndarray, points_px: np.ndarray, perms: lis
     if label_score is not None:
         scores = np.array([label_score(p) for p in keep])
         best = int(np.argmax(scores))
-        if min_score is not None and not scores[best] >= min_score:
+        if min_score is None:
+            keep = [keep[best]]
+        elif not scores[best] >= min_score:
             return None, 0, f"mark score {scores[best]:.2f} below {min_score:.2f}"
-        keep = [p for p, sc in zip(keep, scores) if sc >= scores[best] - 1e-9]
+        else:  # every candidate the marks support (a symmetric pattern of marks: several)
+            keep = [p for p, sc in zip(keep, scores) if sc >= min_score]
     amb = 360 // len(keep) if len(keep) > 1 else 0
     return np.asarray(keep[0], int), amb, ""
