@@ -48,15 +48,15 @@ def draw_target_overlay(gray: np.ndarray, points_px, ids, n_points: int, *, resi
             a, b = P[k].round().astype(int), P[k + 1].round().astype(int)
             cv2.line(img, tuple(a), tuple(b), _colour(frac[k]), lw, cv2.LINE_AA)
     step = 1 if len(ids) <= 40 else max(1, len(ids) // 12)
+    font = 0.35 * up * max(1.0, max(h, w) / 1000)
     for k, (p, i) in enumerate(zip(P, ids)):
         c = tuple(p.round().astype(int))
         cv2.circle(img, c, r, _colour(frac[k]), lw, cv2.LINE_AA)
         if i == 0:
             cv2.circle(img, c, 3 * r, (0, 255, 255), 2 * lw, cv2.LINE_AA)
         if i == 0 or k % step == 0 or k == len(ids) - 1:
-            cv2.putText(img, str(i), (c[0] + r + 2, c[1] - r - 2), cv2.FONT_HERSHEY_SIMPLEX,
-                        0.4 * lw + 0.1, (0, 255, 255) if i == 0 else (255, 255, 255), lw,
-                        cv2.LINE_AA)
+            _label(img, str(i), (c[0] + r + 2, c[1] - r - 2), font, lw,
+                   (0, 255, 255) if i == 0 else (255, 255, 255))
     if residuals_px is not None:
         res = np.asarray(residuals_px, float).reshape(-1, 2)[order]
         scale = residual_scale or _residual_scale(res, max(h, w))
@@ -66,11 +66,20 @@ def draw_target_overlay(gray: np.ndarray, points_px, ids, n_points: int, *, resi
                             (0, 0, 255), lw, cv2.LINE_AA, tipLength=0.3)
         title = f"{title}  residuals x{scale:.0f}".strip()
     if title:
-        cv2.putText(img, title, (8 * up, 20 * up), cv2.FONT_HERSHEY_SIMPLEX, 0.5 * up,
-                    (0, 0, 0), 3 * lw, cv2.LINE_AA)
-        cv2.putText(img, title, (8 * up, 20 * up), cv2.FONT_HERSHEY_SIMPLEX, 0.5 * up,
-                    (0, 255, 255), lw, cv2.LINE_AA)
+        _label(img, title, (8 * up, 20 * up), 0.5 * up * max(1.0, max(h, w) / 1000), lw,
+               (0, 255, 255))
     return img
+
+
+def _label(img, text: str, org, scale: float, thickness: int, colour) -> None:
+    """Text on a dark box, readable on any background."""
+    import cv2
+
+    (tw, th), base = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, scale, thickness)
+    x, y = int(org[0]), int(org[1])
+    cv2.rectangle(img, (x - 2, y - th - 2), (x + tw + 2, y + base), (0, 0, 0), cv2.FILLED)
+    cv2.putText(img, text, (x, y), cv2.FONT_HERSHEY_SIMPLEX, scale, colour, thickness,
+                cv2.LINE_AA)
 
 
 def _residual_scale(res: np.ndarray, size_px: float) -> float:

@@ -244,13 +244,20 @@ class CircleGridTarget(Target):
         if self.origin_dot:
             # the dot labelled 0 against its 3 nearest neighbours on the target (perspective
             # changes sizes across the target, hardly between neighbours)
-            area = np.nan_to_num(dark_blob_areas(g, rough, 1.5 * half), nan=0.0)
             P = self.points_target_mm[:, :2]
             near = np.argsort(np.linalg.norm(P - P[0], axis=1))[1:4]
+            cache: dict[int, float] = {}
+
+            def area(k):  # dark area at image point k, measured when first needed
+                if k not in cache:
+                    a = dark_blob_areas(g, rough[k:k + 1], 1.5 * half[k])[0]
+                    cache[k] = 0.0 if not np.isfinite(a) else float(a)
+                return cache[k]
 
             def score(ids):
                 where = np.argsort(ids)  # image index of each object point
-                return area[where[0]] / max(float(np.median(area[where[near]])), 1e-9)
+                return area(where[0]) / max(float(np.median([area(k) for k in where[near]])),
+                                            1e-9)
 
         perms = symmetry_permutations(self.points_target_mm[:, :2])
         ids, amb, why = choose_order(self.points_target_mm, pts, perms, score,
