@@ -11,6 +11,19 @@ On a Dask distributed cluster (``scheduler="tcp://host:8786"``) the jobs are sub
 of a worker that dies (up to ``distributed.scheduler.allowed-failures`` times, 3 by default)
 on the surviving or restarted workers, so a lost worker costs time, not results.
 
+The package's other two process pools do a different job, and are kept apart on purpose:
+
+- :class:`cutterpose.service.workers.WorkerPool`: the service's long-lived workers, which
+  must keep answering unattended: a bounded queue, a deadline per job, and a crashed worker
+  costing one request (a :class:`~concurrent.futures.ProcessPoolExecutor` fails every
+  pending job when one worker dies; a batch here may fail whole, and a Dask cluster re-runs
+  lost tasks itself);
+- :class:`cutterpose.tracking.worker.AnchorProcess`: one process that lives as long as a
+  tracker and runs one job at a time beside its frame loop, the 12-MP frame handed over
+  through shared memory instead of pickled with the job.
+
+This one is a map over a list of independent jobs whose results come back in job order.
+
 Convention:
     ``on_done(index, result)`` is called in *completion* order (progress bars); the returned
     list is in *job* order. Workers must run the same cutterpose version as the client

@@ -6,6 +6,10 @@ Why not :mod:`cutterpose.parallel`'s pool (a map of one function over many image
 job at a time runs beside a tracking loop that must not wait for it, on a 12-MP frame per job
 (pickling it would cost more than the copy out of shared memory), and the process lives as
 long as the tracker, warmed up with the outline templates before the first job needs them.
+Why not the service's :class:`~cutterpose.service.workers.WorkerPool` (deadlines, a bounded
+queue, crash isolation for many requests): the core may not import the service, and a
+tracker has one job in flight and its own answer to a dead worker (the frame falls back to a
+full measurement with the reason, and the next job starts a new process).
 """
 
 from __future__ import annotations
