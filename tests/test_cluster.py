@@ -21,7 +21,7 @@ from cutterpose.experiments.synthetic import _solve_chunk, generate_trials
 from cutterpose.geometry.camera_files import save_camera
 from cutterpose.geometry.holder import default_holder
 from cutterpose.parallel import JobRunner, run_jobs
-from cutterpose.render.analytic import render_set
+from cutterpose.render.sets import render_set
 from test_features import small_camera
 
 runner = CliRunner()

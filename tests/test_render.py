@@ -20,8 +20,8 @@ from cutterpose.render.analytic import (
     defocus,
     preset,
     render_holder,
-    render_set,
 )
+from cutterpose.render.sets import render_set
 
 
 def small_camera(scale: int = 4) -> DivisionCamera:

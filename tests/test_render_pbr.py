@@ -11,7 +11,7 @@ from cutterpose.errors import InputError
 from cutterpose.geometry.camera import camera_from_dict, default_camera
 from cutterpose.geometry.holder import default_holder
 from cutterpose.geometry.pose import Pose
-from cutterpose.render import pbr
+from cutterpose.render import pbr, sets
 
 HOLDER = default_holder()
 
@@ -152,17 +152,17 @@ def test_render_set_is_an_image_set(mi, tmp_path):
     from cutterpose.experiments.images import load_image_set
 
     cam = small_camera()
-    pbr.render_field_set(2, 5, tmp_path, "new", cam, variant="scalar_rgb", spp=2)
+    sets.render_field_set(2, 5, tmp_path, "new", cam, variant="scalar_rgb", spp=2)
     camera, holder, entries = load_image_set(tmp_path)
     assert len(entries) == 2 and (tmp_path / entries[1]["file"]).exists()
     assert all(e["difficulty"] == "new" and e["engine"] == "pbr" for e in entries)
     # deterministic per seed
     a = json.loads((tmp_path / "truth.json").read_text())["images"][0]["params"]
-    pbr.render_field_set(1, 5, tmp_path / "again", "new", cam, variant="scalar_rgb", spp=2)
+    sets.render_field_set(1, 5, tmp_path / "again", "new", cam, variant="scalar_rgb", spp=2)
     assert json.loads((tmp_path / "again" / "truth.json").read_text())["images"][0][
         "params"] == a
     # an interrupted set goes on where it stopped
-    pbr.render_field_set(2, 5, tmp_path / "again", "new", cam, variant="scalar_rgb", spp=2,
+    sets.render_field_set(2, 5, tmp_path / "again", "new", cam, variant="scalar_rgb", spp=2,
                          resume=True)
     b = json.loads((tmp_path / "again" / "truth.json").read_text())["images"]
     assert [e["params"] for e in b] == [e["params"] for e in entries]
@@ -199,7 +199,7 @@ def test_render_set_views_show_one_holder_from_several_poses(mi, tmp_path):
     """--views: the same scene (wear, chips, slurry, textures), another pose and noise per view;
     views=1 stays the plain set."""
     cam = small_camera()
-    pbr.render_field_set(4, 7, tmp_path / "v", "worn", cam, variant="scalar_rgb", spp=1,
+    sets.render_field_set(4, 7, tmp_path / "v", "worn", cam, variant="scalar_rgb", spp=1,
                          views=2)
     doc = json.loads((tmp_path / "v" / "truth.json").read_text())
     im = doc["images"]
@@ -210,7 +210,7 @@ def test_render_set_views_show_one_holder_from_several_poses(mi, tmp_path):
     assert im[0]["params"]["slurry"] == im[1]["params"]["slurry"]
     assert im[0]["params"] != im[2]["params"]
     assert not np.allclose(im[0]["dof"], im[1]["dof"])
-    pbr.render_field_set(1, 7, tmp_path / "one", "worn", cam, variant="scalar_rgb", spp=1)
+    sets.render_field_set(1, 7, tmp_path / "one", "worn", cam, variant="scalar_rgb", spp=1)
     one = json.loads((tmp_path / "one" / "truth.json").read_text())["images"][0]
     # view 0 of holder h is image h of the plain set, the other views are retakes
     assert "view" not in one and one["params"] == im[0]["params"]
@@ -218,4 +218,4 @@ def test_render_set_views_show_one_holder_from_several_poses(mi, tmp_path):
     assert (tmp_path / "one" / "img_0000.png").read_bytes() == \
         (tmp_path / "v" / "img_0000.png").read_bytes()
     with pytest.raises(InputError, match="views"):
-        pbr.render_field_set(1, 7, tmp_path / "x", "worn", cam, views=0)
+        sets.render_field_set(1, 7, tmp_path / "x", "worn", cam, views=0)

@@ -191,7 +191,8 @@ def render_set_cmd(
         count = len(poses)
 
     if engine == "pbr":
-        from ..render.pbr import field_preset, render_field_set
+        from ..render.pbr import field_preset
+        from ..render.sets import render_field_set
 
         if scheduler is not None or workers > 1:
             fail("--engine pbr renders in one process (Mitsuba uses every core itself); "
@@ -211,8 +212,8 @@ def render_set_cmd(
              "afresh)")
     if engine != "analytic":
         raise InputError(f"--engine must be 'analytic' or 'pbr', got {engine!r}")
-    from ..render.analytic import DEFAULT_MIX, render_set
     from ..render.analytic import preset as get_preset
+    from ..render.sets import DEFAULT_MIX, render_set
 
     mix = DEFAULT_MIX
     if preset is not None:
