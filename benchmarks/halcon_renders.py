@@ -25,7 +25,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from cutterpose.calibration.halcon_plate import load_halcon_plate
+from cutterpose.calibration.halcon_plate import HalconPlate
 from cutterpose.calibration.intrinsics import calibrate
 from cutterpose.calibration.plate import render_plate, sample_plate_poses
 from cutterpose.calibration.view_refine import calibrate_views
@@ -63,22 +63,9 @@ def run(name: str, plate, poses, settings, out: Path | None):
     ids, pts, used, skipped = [], [], [], {}
     t0 = time.time()
     for k, pose in enumerate(poses):
-        img = render_plate(CAMERA, pose, getattr(plate, "plate", plate), settings=settings,
-                           rng=rng)
+        img = render_plate(CAMERA, pose, plate, settings=settings, rng=rng)
         if out is not None:
             cv2.imwrite(str(out / f"{name}_{k:02d}.png"), img)
-        if hasattr(plate, "plate"):  # the caltab: the project's caltab detector
-            from cutterpose.calibration.intrinsics import detect_plate
-            from cutterpose.errors import FeatureError
-
-            try:
-                det = detect_plate(img, plate.plate)
-                ids.append(np.arange(plate.plate.n_points))
-                pts.append(det.points_px)
-                used.append(k)
-            except FeatureError as e:
-                skipped[k] = str(e)
-            continue
         det = plate.detect(img)
         if det:
             ids.append(det.ids)
@@ -90,9 +77,9 @@ def run(name: str, plate, poses, settings, out: Path | None):
     rows = []
     for model in ("polynomial", "division"):
         t1 = time.time()
-        if hasattr(plate, "plate") and model == "division":
-            res = calibrate(np.stack(pts), plate.plate, CAMERA.image_size_px, model="division",
-                            pixel_height_m=PIXEL_HEIGHT_M)
+        if not plate.hexagonal and model == "division":  # complete views: intrinsics'
+            res = calibrate(np.stack(pts), plate.geometry.plate, CAMERA.image_size_px,
+                            model="division", pixel_height_m=PIXEL_HEIGHT_M)
         else:
             res = calibrate_views(plate, ids, pts, CAMERA.image_size_px, model=model,
                                   pixel_height_m=PIXEL_HEIGHT_M)
@@ -117,12 +104,12 @@ def main():
     out = Path(a.out) if a.out else None
     if out is not None:
         out.mkdir(parents=True, exist_ok=True)
-    hexp = load_halcon_plate(data / "hexplate_15x17_2.5mm.cpd")
-    caltab = load_halcon_plate(data / "caltab_7x7_30mm.descr")
+    hexp = HalconPlate.from_file(data / "hexplate_15x17_2.5mm.cpd")
+    caltab = HalconPlate.from_file(data / "caltab_7x7_30mm.descr")
     n_full = a.views - a.views // 3
     hex_poses = (sample_plate_poses(CAMERA, n_full, hexp, distance_mm=(230, 330), seed=a.seed)
                  + _partial_poses(hexp, a.views // 3, a.seed))
-    cal_poses = sample_plate_poses(CAMERA, a.views, caltab.plate, distance_mm=(750, 1000),
+    cal_poses = sample_plate_poses(CAMERA, a.views, caltab, distance_mm=(750, 1000),
                                    seed=a.seed)
     print(f"rendering camera: {CAMERA.to_dict()}")
     print(f"preset {a.preset}, {a.views} views per plate\n")
@@ -132,7 +119,7 @@ def main():
     for name, plate, poses in (("hexplate_15x17_2.5mm.cpd", hexp, hex_poses),
                                ("caltab_7x7_30mm.descr", caltab, cal_poses)):
         rows, skipped, t_det = run(Path(name).stem, plate, poses, settings, out)
-        for (nm, model, nu, ns, mv, df, dp, rms, std, t) in rows:
+        for (_, model, nu, ns, mv, df, dp, rms, std, _) in rows:
             print(f"| {name} | {model} | {nu} | {ns} | {mv} | {df[0]:+.3f} | {df[1]:+.3f} | "
                   f"{dp[0]:+.2f} | {dp[1]:+.2f} | {rms:.4f} | "
                   f"{std.get('focal_length_m', std.get('fy_px', np.nan)) * 1e6:.3f} um | "

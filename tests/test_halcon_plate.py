@@ -10,6 +10,7 @@ import pytest
 from cutterpose.calibration.halcon_plate import (
     FINDER_HOLES,
     HalconCaltab,
+    HalconPlate,
     HexagonalPlate,
     caltab_description,
     hexagonal_description,
@@ -131,15 +132,20 @@ CAM = PolynomialCamera(0.008, -900.0, 3e6, 0.0, 0.3, -0.2, (4.8e-6, 4.8e-6), (32
 
 @pytest.fixture(scope="module")
 def hexplate():
-    return load_halcon_plate(DATA / "hexplate_15x17_2.5mm.cpd")
+    return HalconPlate.from_file(DATA / "hexplate_15x17_2.5mm.cpd")
 
 
-def test_detect_full_view(hexplate):
+@pytest.mark.parametrize("blur, found, tol_px", [("easy", 1.0, 0.1), ("blurred", 1.0, 0.3)])
+def test_detect_full_view(hexplate, blur, found, tol_px):
+    from cutterpose.render.analytic import preset
+
+    # "blurred": a 2.5 px defocus disk fills the 6 px holes in a threshold (they only dim
+    # their marks), yet every finder pattern is found
     pose = sample_plate_poses(CAM, 1, hexplate, distance_mm=(300, 350), seed=3)[0]
-    det = hexplate.detect(render_plate(CAM, pose, hexplate))
-    assert det and len(det.ids) == hexplate.n_points and det.finders == 5
+    det = hexplate.detect(render_plate(CAM, pose, hexplate, settings=preset(blur)))
+    assert det and len(det.ids) >= found * hexplate.n_points and det.info["finders"] == 5
     truth = CAM.project(pose.apply(hexplate.points_target_mm[det.ids]))
-    assert np.max(np.linalg.norm(det.points_px - truth, axis=1)) < 0.15
+    assert np.max(np.linalg.norm(det.points_px - truth, axis=1)) < tol_px
 
 
 def test_detect_partial_view_gives_ids(hexplate):
@@ -164,7 +170,7 @@ def test_detect_failures_say_why(hexplate):
 
 
 def test_polynomial_calibration_on_renders(hexplate):
-    poses = sample_plate_poses(CAM, 5, hexplate, distance_mm=(270, 380), seed=5)
+    poses = sample_plate_poses(CAM, 4, hexplate, distance_mm=(270, 380), seed=5)
     ids, pts = [], []
     for pose in poses:
         det = hexplate.detect(render_plate(CAM, pose, hexplate))
@@ -180,3 +186,40 @@ def test_polynomial_calibration_on_renders(hexplate):
     assert res.rms_px < 0.1
     assert set(res.std) >= {"focal_length_m", "k1_per_m2", "p2_per_m", "cx_px"}
     assert all(np.isfinite(v) and v > 0 for v in res.std.values())
+
+
+def test_target_interface(tmp_path):
+    from cutterpose.calibration.targets import target_from_spec
+
+    hexp = target_from_spec(str(DATA / "hexplate_15x17_2.5mm.cpd"))
+    caltab = target_from_spec(str(DATA / "caltab_7x7_30mm.descr"))
+    assert isinstance(hexp, HalconPlate) and hexp.hexagonal and hexp.n_points == 255
+    assert isinstance(caltab, HalconPlate) and not caltab.hexagonal
+    assert hexp.rotation_symmetry_deg == 0 and caltab.rotation_symmetry_deg == 0
+    # the caltab from its .descr is detected by the caltab detector, all 49 points in order
+    cam = CAM
+    pose = sample_plate_poses(cam, 1, caltab, distance_mm=(800, 900), seed=2)[0]
+    det = caltab.detect(render_plate(cam, pose, caltab))
+    assert det and np.array_equal(det.ids, np.arange(49))
+    truth = cam.project(pose.apply(caltab.points_target_mm))
+    assert np.max(np.linalg.norm(det.points_px - truth, axis=1)) < 0.3
+    assert HalconPlate.from_dict(hexp.to_dict()).n_points == 255
+    with pytest.raises(ModelFileError, match="file"):
+        HalconPlate.from_dict({"kind": "halcon"})
+
+
+def test_calibrate_polynomial_model_on_the_caltab():
+    """``intrinsics.calibrate(model="polynomial")``: the caltab plate's complete views."""
+    from cutterpose.calibration.intrinsics import calibrate
+
+    plate = CirclePlate()
+    poses = sample_plate_poses(CAM, 6, plate, distance_mm=(800, 1000), seed=4)
+    pts = np.stack([CAM.project(p.apply(plate.points_mm)) for p in poses])
+    pts += np.random.default_rng(0).normal(0, 0.02, pts.shape)
+    res = calibrate(pts, plate, CAM.image_size_px, model="polynomial", pixel_height_m=4.8e-6,
+                    bias_rounds=0)
+    assert isinstance(res.camera, PolynomialCamera)
+    assert abs(res.camera.focal_length_m / CAM.focal_length_m - 1) < 0.005
+    assert res.rms_px < 0.03 and len(res.per_image_rms_px) == 6
+    with pytest.raises(InputError, match="polynomial"):
+        calibrate(pts, plate, CAM.image_size_px, model="fisheye")

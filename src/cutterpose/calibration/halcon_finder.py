@@ -3,9 +3,10 @@
 Pipeline (one grey image, a :class:`~cutterpose.calibration.halcon_plate.HexagonalPlate`):
 
 1. marks: adaptive threshold (``cv2.adaptiveThreshold``, robust to uneven light) of the marks'
-   polarity, contours with their holes (``cv2.findContours``, two-level hierarchy), ellipse
-   fit and a roundness test per contour (``cv2.fitEllipse``); a mark *has a hole* when its
-   contour encloses a round child contour near its centre;
+   polarity, outer contours (``cv2.findContours``), ellipse fit and a roundness test per
+   contour (``cv2.fitEllipse``); a mark *has a hole* when its centre is darker than its rim
+   by 25 % of the mark's contrast (measured on the grey levels, so blur that fills the hole in
+   the binary image does not hide it);
 2. sub-pixel centres: ellipse fit on sub-pixel grey-level crossings of the mark's outer edge
    (the hole's edge is left out);
 3. finder patterns: every mark whose six nearest marks surround it is a candidate hexagon; its
@@ -31,32 +32,13 @@ References:
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["HexDetection", "detect_hexagonal", "find_marks"]
+from .targets import TargetDetection
 
-
-@dataclass
-class HexDetection:
-    """Marks of one image in plate order; falsy (with ``reason``) when the plate is not found.
-
-    Attributes
-    ----------
-    points_px : (n, 2) sub-pixel mark centres (observed pixels).
-    ids : (n,) plate index of each mark (rows of ``points_target_mm``).
-    reason : why nothing usable was found ("" when found).
-    finders : number of finder patterns seen whole.
-    """
-
-    points_px: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
-    ids: np.ndarray = field(default_factory=lambda: np.zeros(0, int))
-    reason: str = ""
-    finders: int = 0
-
-    def __bool__(self) -> bool:
-        return not self.reason and len(self.ids) > 0
+__all__ = ["detect_hexagonal", "find_marks"]
 
 
 # ------------------------------------------------------------------------------------------
@@ -94,21 +76,55 @@ def find_marks(gray: np.ndarray, light_marks: bool, min_area_px: float = 12.0) -
         ell = np.pi / 4 * a1 * a2
         if not (0.8 < area / max(ell, 1e-9) < 1.2) or min(a1, a2) < 0.25 * max(a1, a2):
             continue
-        hole = False
-        j = hier[k, 2]
-        while j != -1:
-            ch = contours[j]
-            ca = cv2.contourArea(ch)
-            if len(ch) >= 5 and 0.03 < ca / area < 0.6:
-                (hu, hv), _, _ = cv2.fitEllipse(ch)
-                if np.hypot(hu - cu, hv - cv_) < 0.2 * min(a1, a2):
-                    hole = True
-            j = hier[j, 0]
-        out.append((cu, cv_, a1, a2, ang, hole))
+        out.append((cu, cv_, a1, a2, ang, *_hole_levels(g, (cu, cv_), (a1, a2), ang)))
     if not out:
         return _Marks(np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0), np.zeros(0, bool))
     a = np.array(out, float)
-    return _Marks(a[:, :2], a[:, 2:4], a[:, 4], a[:, 5].astype(bool))
+    return _Marks(a[:, :2], a[:, 2:4], a[:, 4], _holes(a[:, :2], a[:, 5:]))
+
+
+def _ellipse_radius(shape, origin, centre, axes, angle):
+    """Normalised elliptic radius (1 on the ellipse) of every pixel of a window at ``origin``."""
+    vv, uu = np.mgrid[origin[1]:origin[1] + shape[0], origin[0]:origin[0] + shape[1]]
+    t = np.radians(angle)
+    du, dv = uu - centre[0], vv - centre[1]
+    p = (du * np.cos(t) + dv * np.sin(t)) / (0.5 * axes[0])
+    q = (-du * np.sin(t) + dv * np.cos(t)) / (0.5 * axes[1])
+    return np.hypot(p, q)
+
+
+def _hole_levels(g: np.ndarray, centre, axes, angle):
+    """(rim, centre, background) grey levels of one mark: the rim's brightest tenth, the
+    centre's darkest tenth, the median around the mark (NaN when out of the image)."""
+    h, w = g.shape
+    half = int(np.ceil(0.5 * max(axes) * 1.6)) + 1
+    u0, v0 = max(int(round(centre[0])) - half, 0), max(int(round(centre[1])) - half, 0)
+    roi = g[v0:min(v0 + 2 * half + 1, h), u0:min(u0 + 2 * half + 1, w)].astype(float)
+    rho = _ellipse_radius(roi.shape, (u0, v0), centre, axes, angle)
+    centre_v, rim, bg = roi[rho < 0.3], roi[(rho > 0.55) & (rho < 0.9)], roi[rho > 1.25]
+    if centre_v.size == 0 or rim.size == 0 or bg.size == 0:
+        return np.nan, np.nan, np.nan
+    return np.percentile(rim, 90), np.percentile(centre_v, 10), np.median(bg)
+
+
+def _holes(centres: np.ndarray, levels: np.ndarray, depth: float = 0.25) -> np.ndarray:
+    """Which marks carry a dot-shaped hole, from the grey levels (not the binary image, in
+    which blur fills small holes). A hole darkens the mark's centre below its rim; under
+    strong blur the hole no longer shows as a dip but still dims the whole mark, so a mark
+    whose centre is darker than the typical centre of the marks around it (the median of its
+    18 nearest: plain marks are the majority everywhere) by ``depth`` of its contrast counts
+    too."""
+    from scipy.spatial import cKDTree
+
+    rim, ctr, bg = levels.T
+    contrast = rim - bg
+    dip = (contrast > 0) & (rim - ctr > depth * contrast)
+    if len(centres) >= 7:
+        k = min(19, len(centres))
+        _, idx = cKDTree(centres).query(centres, k=k)
+        typical = np.nanmedian(ctr[idx[:, 1:]], axis=1)
+        dip |= (contrast > 0) & (typical - ctr > depth * contrast)
+    return dip
 
 
 def _refine_centre(g: np.ndarray, centre, axes, angle) -> np.ndarray | None:
@@ -122,14 +138,10 @@ def _refine_centre(g: np.ndarray, centre, axes, angle) -> np.ndarray | None:
     if u0 < 0 or v0 < 0 or u1 > w or v1 > h:
         return None
     roi = g[v0:v1, u0:u1].astype(float)
-    # pixels in a band around the fitted outer edge only (the hole's edge stays out)
-    vv, uu = np.mgrid[v0:v1, u0:u1].astype(float)
-    t = np.radians(angle)
-    du, dv = uu - centre[0], vv - centre[1]
-    p = (du * np.cos(t) + dv * np.sin(t)) / (0.5 * axes[0])
-    q = (-du * np.sin(t) + dv * np.cos(t)) / (0.5 * axes[1])
-    rho = np.hypot(p, q)
-    band = (rho > 0.72) & (rho < 1.3)
+    # a wide band around the mark's edge: under blur the mid-level contour lies well inside
+    # the thresholded outline; the hole's edge is told apart by its direction (below)
+    rho = _ellipse_radius(roi.shape, (u0, v0), centre, axes, angle)
+    band = (rho > 0.3) & (rho < 1.25)
     inner, outer = roi[rho < 0.72], roi[(rho > 1.3) & (rho < 1.6)]
     if inner.size == 0 or outer.size == 0:
         return None
@@ -141,8 +153,12 @@ def _refine_centre(g: np.ndarray, centre, axes, angle) -> np.ndarray | None:
         m = ((a0 - thr) * (a1 - thr) < 0) & m0 & m1
         v, u = np.nonzero(m)
         f = (thr - a0[m]) / (a1[m] - a0[m])
-        pts.append(np.stack([u + f, v.astype(float)], 1) if horiz
-                   else np.stack([u.astype(float), v + f], 1))
+        p = (np.stack([u + f, v.astype(float)], 1) if horiz
+             else np.stack([u.astype(float), v + f], 1))
+        # keep the mark's own outer edge: the grey level falls away from its centre (the
+        # hole's edge and a close neighbour's blurred edge rise outwards and are left out)
+        out = p[:, 0 if horiz else 1] + (u0 if horiz else v0) - centre[0 if horiz else 1]
+        pts.append(p[(a1[m] - a0[m]) * out < 0])
     e = np.concatenate(pts)
     if len(e) < 10:
         return None
@@ -237,25 +253,26 @@ def _grow(marks: _Marks, plate, seed_plate, seed_img, tol: float = 0.33):
     return ids, np.array([match[k] for k in ids])
 
 
-def detect_hexagonal(gray, plate) -> HexDetection:
+def detect_hexagonal(gray, plate) -> TargetDetection:
     """Find a hexagonal plate's marks (module docstring). Never raises on image content: a
-    plate not found gives a falsy :class:`HexDetection` whose ``reason`` says why."""
+    plate not found gives a falsy :class:`~cutterpose.calibration.targets.TargetDetection`
+    whose ``reason`` says why; ``info["finders"]`` counts the finder patterns seen whole."""
     import cv2
 
     g = np.asarray(gray)
     if g.ndim == 3:
         g = cv2.cvtColor(g, cv2.COLOR_BGR2GRAY)
     if g.ndim != 2 or g.size == 0:
-        return HexDetection(reason=f"not a grey image (shape {g.shape})")
+        return TargetDetection.missing(f"not a grey image (shape {g.shape})")
     if g.dtype != np.uint8:
         g = np.clip(g, 0, 255).astype(np.uint8)
     light = plate.polarity == "light_on_dark"
     marks = find_marks(g, light)
     if len(marks.centre) < 7:
-        return HexDetection(reason=f"only {len(marks.centre)} round marks found")
+        return TargetDetection.missing(f"only {len(marks.centre)} round marks found")
     seeds = _seeds(marks, plate)
     if not seeds:
-        return HexDetection(reason=f"no finder pattern seen whole ({len(marks.centre)} marks, "
+        return TargetDetection.missing(f"no finder pattern seen whole ({len(marks.centre)} marks, "
                                    f"{int(marks.hole.sum())} with a hole)")
     best = None
     for sp, si in seeds[:8]:
@@ -271,12 +288,13 @@ def detect_hexagonal(gray, plate) -> HexDetection:
             best = (score, ids, blobs, agree)
     _, ids, blobs, agree = best
     if agree < 0.95:
-        return HexDetection(reason=f"finder pattern matched but {100 * (1 - agree):.0f} % of "
+        return TargetDetection.missing(f"finder pattern matched but {100 * (1 - agree):.0f} % of "
                                    "the marks disagree with the plate's holes")
     gm = g if light else 255 - g
     pts = [_refine_centre(gm, marks.centre[b], marks.axes[b], marks.angle[b]) for b in blobs]
     ok = np.array([p is not None for p in pts])
     if ok.sum() < 7:
-        return HexDetection(reason="too few marks with a measurable edge")
+        return TargetDetection.missing("too few marks with a measurable edge")
     finders = len({f[0] for f in plate.finders} & set(ids[ok].tolist()))
-    return HexDetection(np.array([p for p in pts if p is not None]), ids[ok], "", finders)
+    return TargetDetection(np.array([p for p in pts if p is not None]), ids[ok],
+                           axes_px=marks.axes[blobs[ok]], info={"finders": finders})

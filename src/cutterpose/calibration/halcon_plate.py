@@ -46,10 +46,11 @@ import numpy as np
 
 from ..errors import InputError, ModelFileError
 from .plate import CirclePlate
+from .targets import Target, TargetDetection, register_target
 
 __all__ = ["PlateDescription", "read_plate_description", "write_plate_description",
-           "HalconCaltab", "HexagonalPlate", "hexagonal_description", "caltab_description",
-           "load_halcon_plate", "FINDER_HOLES"]
+           "HalconCaltab", "HexagonalPlate", "HalconPlate", "hexagonal_description",
+           "caltab_description", "load_halcon_plate", "FINDER_HOLES"]
 
 POLARITIES = ("light_on_dark", "dark_on_light")
 
@@ -478,19 +479,122 @@ class HexagonalPlate:
         cover_bg = np.clip(0.5 - d_bg / np.maximum(blur_mm, 1e-9), 0.0, 1.0)
         return cover_bg if self.polarity == "light_on_dark" else 1.0 - cover_bg
 
-    def detect(self, gray):
-        """Find the plate's marks in a grey image (see
-        :func:`cutterpose.calibration.halcon_finder.detect_hexagonal`)."""
-        from .halcon_finder import detect_hexagonal
-
-        return detect_hexagonal(gray, self)
-
 
 def load_halcon_plate(path) -> HalconCaltab | HexagonalPlate:
-    """The plate of a HALCON description file: ``.descr`` -> :class:`HalconCaltab`, ``.cpd``
-    -> :class:`HexagonalPlate` (other suffixes: by content, holes meaning hexagonal)."""
+    """The geometry of a HALCON description file: ``.descr`` -> :class:`HalconCaltab`,
+    ``.cpd`` -> :class:`HexagonalPlate` (other suffixes: by content, holes meaning hexagonal).
+    :class:`HalconPlate` is the calibration target made of either."""
     desc = read_plate_description(path)
     suffix = Path(path).suffix.lower()
     if suffix == ".descr" or (suffix != ".cpd" and not desc.hole_radius_mm.any()):
         return HalconCaltab(desc)
     return HexagonalPlate(desc)
+
+
+@register_target
+class HalconPlate(Target):
+    """A HALCON plate named by its description file, as a calibration target.
+
+    ``.descr`` plates are detected by the caltab detector
+    (:class:`~cutterpose.calibration.circle_grids.CaltabTarget`: circle grid, frame and
+    triangle); ``.cpd`` plates by their finder patterns
+    (:func:`~cutterpose.calibration.halcon_finder.detect_hexagonal`, partial views with ids).
+    In a target file: ``{kind: halcon, file: path/to/plate.cpd}`` (a relative path is taken
+    from the working directory).
+    """
+
+    kind = "halcon"
+    min_points = 9
+
+    def __init__(self, geometry: HalconCaltab | HexagonalPlate, path=None):
+        self.geometry = geometry
+        self.path = None if path is None else Path(path)
+
+    @classmethod
+    def from_file(cls, path) -> HalconPlate:
+        return cls(load_halcon_plate(path), path)
+
+    @property
+    def hexagonal(self) -> bool:
+        return isinstance(self.geometry, HexagonalPlate)
+
+    @property
+    def points_target_mm(self) -> np.ndarray:
+        return self.geometry.points_target_mm
+
+    def circle_outline_mm(self, n: int = 64) -> np.ndarray:
+        g = self.geometry
+        if self.hexagonal:
+            return g.circle_outline_mm(n)
+        return g.plate.circle_outline_mm(n) + [0.0, 0.0, g.description.z_offset_mm]
+
+    @property
+    def rotation_symmetry_deg(self) -> int:
+        return 0  # the triangle or the finder patterns break every symmetry
+
+    def detect(self, gray) -> TargetDetection:
+        if self.hexagonal:
+            from .halcon_finder import detect_hexagonal
+
+            return detect_hexagonal(gray, self.geometry)
+        from .circle_grids import CaltabTarget
+
+        return CaltabTarget(self.geometry.plate).detect(gray)
+
+    @property
+    def bounds_mm(self):
+        ex, ey = self.half_extent_mm
+        return (-ex, ex, -ey, ey)
+
+    def darkness(self, x_mm, y_mm, blur_mm):
+        return self._drawn.darkness(x_mm, y_mm, blur_mm)
+
+    # the interface of plate.render_plate / sample_plate_poses (as CirclePlate's)
+    @property
+    def _drawn(self):
+        return self.geometry if self.hexagonal else self.geometry.plate
+
+    @property
+    def half_extent_mm(self):
+        return self._drawn.half_extent_mm
+
+    @property
+    def diameter_mm(self) -> float:
+        return self._drawn.diameter_mm
+
+    @property
+    def mark_vertices_mm(self) -> np.ndarray:
+        return self._drawn.mark_vertices_mm
+
+    @property
+    def points_mm(self) -> np.ndarray:
+        return self.points_target_mm
+
+    def outline_mm(self, n_per_side: int = 32) -> np.ndarray:
+        return self._drawn.outline_mm(n_per_side)
+
+    # --- description -------------------------------------------------------------------------
+    def to_dict(self) -> dict:
+        return {"kind": self.kind, "file": str(self.path) if self.path else None,
+                "plate": "hexagonal" if self.hexagonal else "rectangular",
+                "marks": self.n_points}
+
+    @classmethod
+    def from_dict(cls, d, where="target"):
+        f = d.get("file") if isinstance(d, dict) else None
+        if not f:
+            raise ModelFileError(f"{where}: a halcon target needs 'file' (a .descr or .cpd)")
+        return cls.from_file(f)
+
+    @classmethod
+    def from_spec(cls, fields, options):
+        if len(fields) != 1 or options:
+            raise InputError("halcon target: give halcon:PATH.cpd (or just the .descr/.cpd path)")
+        return cls.from_file(fields[0])
+
+    def spec(self) -> str:
+        return str(self.path) if self.path else "halcon"
+
+    def describe(self) -> str:
+        kind = "hexagonal" if self.hexagonal else "rectangular"
+        return f"HALCON {kind} plate {self.geometry.name} ({self.n_points} marks)"

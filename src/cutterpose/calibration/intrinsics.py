@@ -290,10 +290,11 @@ def calibrate(points_px: np.ndarray, plate: CirclePlate, image_size_px, *,
     Parameters
     ----------
     points_px : (M, rows*cols, 2) measured ellipse centres.
-    model : ``"division"`` (our least squares) or ``"opencv"`` (``cv2.calibrateCamera``,
-        k1, k2, p1, p2, k3).
-    pixel_height_m : the fixed pixel height ``sy`` of the division model (only sets the metric
-        unit of f and kappa; the projection does not depend on it).
+    model : ``"division"`` (our least squares), ``"polynomial"`` (HALCON's
+        ``area_scan_polynomial``, :mod:`cutterpose.calibration.view_refine`) or ``"opencv"``
+        (``cv2.calibrateCamera``, k1, k2, p1, p2, k3).
+    pixel_height_m : the fixed pixel height ``sy`` of the HALCON models (only sets the metric
+        unit of f and the distortion; the projection does not depend on it).
     bias_rounds : rounds of ellipse-centre bias correction (0 = plain ellipse centres).
     """
     pts = np.asarray(points_px, float)
@@ -302,9 +303,17 @@ def calibrate(points_px: np.ndarray, plate: CirclePlate, image_size_px, *,
     M = len(pts)
     if M < 3:
         raise DegenerateInputError(f"calibration needs at least 3 usable plate images, got {M}")
-    if model not in ("division", "opencv"):
-        raise InputError(f"model must be 'division' or 'opencv', got {model!r}")
+    if model not in ("division", "opencv", "polynomial"):
+        raise InputError(f"model must be 'division', 'polynomial' or 'opencv', got {model!r}")
     names = list(names) if names is not None else [f"view{m}" for m in range(M)]
+    if model == "polynomial":
+        from .view_refine import calibrate_views
+
+        r = calibrate_views(plate, [np.arange(plate.n_points)] * M, list(pts), image_size_px,
+                            model=model, pixel_height_m=pixel_height_m,
+                            bias_rounds=bias_rounds, names=names)
+        return CalibrationResult(r.camera, r.rms_px, r.per_image_rms_px, r.std, r.poses,
+                                 names, uncorrected=r.uncorrected)
     X = plate.points_mm
 
     def solve(obs, warm: RefineResult | None):

@@ -29,6 +29,8 @@ References:
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
@@ -42,7 +44,7 @@ from ..geometry.camera import (
 )
 from ..geometry.pose import Pose
 
-__all__ = ["refine_views", "calibrate_views", "VIEW_MODELS"]
+__all__ = ["refine_views", "calibrate_views", "ViewsCalibration", "VIEW_MODELS"]
 
 VIEW_MODELS = ("division", "polynomial")
 _N_DIST = {"division": 1, "polynomial": 5}
@@ -186,15 +188,17 @@ def calibrate_views(target, ids_views, px_views, image_size_px, *, model: str = 
                     pixel_height_m: float = 3.45e-6, bias_rounds: int = 2, names=None):
     """Calibrate from ``M >= 3`` views of ``target`` (any object with ``points_target_mm`` and,
     for circular marks, ``circle_outline_mm``); view ``m`` shows ``ids_views[m]`` at
-    ``px_views[m]``. Returns a :class:`cutterpose.calibration.intrinsics.CalibrationResult`.
+    ``px_views[m]``. Returns a :class:`ViewsCalibration` (the fields of
+    :class:`cutterpose.calibration.intrinsics.CalibrationResult`, which wraps it).
     """
-    from .intrinsics import CalibrationResult
     from .plate import ellipse_center_bias_px
 
     M = len(ids_views)
     if M < 3:
         raise DegenerateInputError(f"calibration needs at least 3 usable views, got {M}")
-    pts_all = np.asarray(target.points_target_mm, float)
+    # a Target (points_target_mm) or a CirclePlate (points_mm)
+    pts_all = np.asarray(getattr(target, "points_target_mm", None)
+                         if hasattr(target, "points_target_mm") else target.points_mm, float)
     X_views = [pts_all[np.asarray(i, int)] for i in ids_views]
     px = [np.asarray(p, float) for p in px_views]
     if any(len(x) < 6 or len(x) != len(p) for x, p in zip(X_views, px)):
@@ -218,8 +222,24 @@ def calibrate_views(target, ids_views, px_views, image_size_px, *, model: str = 
         sq0 = np.concatenate([np.sum(r**2, axis=1) for r in first[2]])
         unc = {"camera": first[0].to_dict(), "rms_px": float(np.sqrt(sq0.mean())),
                "std": first[3]}
-    return CalibrationResult(cam, float(np.sqrt(sq.mean())), per, std, poses, names,
-                             uncorrected=unc)
+    return ViewsCalibration(cam, float(np.sqrt(sq.mean())), per, std, poses, names, unc, res)
+
+
+@dataclass
+class ViewsCalibration:
+    """Result of :func:`calibrate_views`: the camera, the RMS reprojection error over all
+    points (and per view), the parameters' standard deviations (HALCON's units), the target
+    poses, the view names, the figures before the ellipse-centre bias correction, and the
+    residuals (n_m, 2) of every view."""
+
+    camera: Camera
+    rms_px: float
+    per_image_rms_px: list
+    std: dict
+    poses: list
+    used: list
+    uncorrected: dict | None
+    residuals_px: list
 
 
 class _Subset:
@@ -231,7 +251,9 @@ class _Subset:
 
     @property
     def points_mm(self):
-        return np.asarray(self._t.points_target_mm, float)[self._ids]
+        t = self._t
+        pts = t.points_target_mm if hasattr(t, "points_target_mm") else t.points_mm
+        return np.asarray(pts, float)[self._ids]
 
     def circle_outline_mm(self, n: int = 64):
         return self._t.circle_outline_mm(n)[self._ids]
