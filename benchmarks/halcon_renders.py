@@ -109,7 +109,9 @@ def main():
     n_full = a.views - a.views // 3
     hex_poses = (sample_plate_poses(CAMERA, n_full, hexp, distance_mm=(230, 330), seed=a.seed)
                  + _partial_poses(hexp, a.views // 3, a.seed))
-    cal_poses = sample_plate_poses(CAMERA, a.views, caltab, distance_mm=(750, 1000),
+    # the CirclePlate's sampler keeps the triangular mark in view too
+    cal_poses = sample_plate_poses(CAMERA, a.views, caltab.geometry.plate,
+                                   distance_mm=(750, 1000),
                                    seed=a.seed)
     print(f"rendering camera: {CAMERA.to_dict()}")
     print(f"preset {a.preset}, {a.views} views per plate\n")

@@ -198,7 +198,8 @@ def test_target_interface(tmp_path):
     assert hexp.rotation_symmetry_deg == 0 and caltab.rotation_symmetry_deg == 0
     # the caltab from its .descr is detected by the caltab detector, all 49 points in order
     cam = CAM
-    pose = sample_plate_poses(cam, 1, caltab, distance_mm=(800, 900), seed=2)[0]
+    # poses from the CirclePlate: its sampler keeps the triangular mark in view too
+    pose = sample_plate_poses(cam, 1, caltab.geometry.plate, distance_mm=(800, 900), seed=2)[0]
     det = caltab.detect(render_plate(cam, pose, caltab))
     assert det and np.array_equal(det.ids, np.arange(49))
     truth = cam.project(pose.apply(caltab.points_target_mm))

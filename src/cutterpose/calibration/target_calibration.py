@@ -214,9 +214,10 @@ def calibrate_target(views: list[TargetView], target: Target, image_size_px, *,
     if model != "opencv":
         from .view_refine import calibrate_views
 
-        res = calibrate_views(target, [v.ids for v in views], px, image_size_px, model=model,
-                              pixel_height_m=pixel_height_m, bias_rounds=bias_rounds,
-                              names=names)
+        r = calibrate_views(target, [v.ids for v in views], px, image_size_px, model=model,
+                            pixel_height_m=pixel_height_m, bias_rounds=bias_rounds, names=names)
+        res = CalibrationResult(r.camera, r.rms_px, r.per_image_rms_px, r.std, r.poses, names,
+                                uncorrected=r.uncorrected)
         residuals = _residuals(res.camera, res.poses, X_views, px, views, target, has_circles)
     else:
         coefs = parse_coefficients(coefficients)

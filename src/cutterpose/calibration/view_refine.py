@@ -210,7 +210,7 @@ def calibrate_views(target, ids_views, px_views, image_size_px, *, model: str = 
     for _ in range(bias_rounds if outline is not None and outline() is not None else 0):
         obs = []
         for ids, p, pose in zip(ids_views, px, sol[1]):
-            bias = ellipse_center_bias_px(sol[0], pose, _Subset(target, ids))
+            bias = ellipse_center_bias_px(sol[0], pose, target, ids=ids)
             obs.append(p - np.nan_to_num(bias))
         sol = refine_views(model, X_views, obs, image_size_px, pixel_height_m,
                            warm=(sol[4], sol[5], sol[6]))
@@ -240,20 +240,3 @@ class ViewsCalibration:
     used: list
     uncorrected: dict | None
     residuals_px: list
-
-
-class _Subset:
-    """The marks ``ids`` of a target, with the interface of
-    :func:`~cutterpose.calibration.plate.ellipse_center_bias_px`."""
-
-    def __init__(self, target, ids):
-        self._t, self._ids = target, np.asarray(ids, int)
-
-    @property
-    def points_mm(self):
-        t = self._t
-        pts = t.points_target_mm if hasattr(t, "points_target_mm") else t.points_mm
-        return np.asarray(pts, float)[self._ids]
-
-    def circle_outline_mm(self, n: int = 64):
-        return self._t.circle_outline_mm(n)[self._ids]
