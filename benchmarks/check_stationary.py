@@ -141,7 +141,7 @@ def check_instance(P: np.ndarray, m: np.ndarray, n_starts: int, rng: np.random.G
     sp = opnp.stationary_points(Pn, m)
     G = sp["G"] / np.trace(sp["G"])
     coef = opnp.gradient_coefficients(G)
-    sysm = opnp._SYSTEM
+    sysm = opnp.SYSTEM
 
     def f(q):
         return opnp.cost(G, q)
@@ -166,10 +166,10 @@ def check_instance(P: np.ndarray, m: np.ndarray, n_starts: int, rng: np.random.G
     # --- ASPnP cases 1 and 2
     sa = aspnp.stationary_points(Pn, m)
     M = sa["M"]
-    for case, mp, system, nfree in ((1, aspnp._MAP1, aspnp._SYS1, 3),
-                                    (2, aspnp._MAP2, aspnp._SYS2, 2)):
+    for case, mp, system, nfree in ((1, aspnp.MAP1, aspnp.SYS1, 3),
+                                    (2, aspnp.MAP2, aspnp.SYS2, 2)):
         c = mp @ M.ravel()
-        fixed = (aspnp._CASE1_FIXED, aspnp._CASE2_FIXED)[case - 1]
+        fixed = (aspnp.CASE1_FIXED, aspnp.CASE2_FIXED)[case - 1]
         free = np.isnan(fixed)
 
         def F(x, fixed=fixed, free=free, M=M):

@@ -56,7 +56,7 @@ def write_grid() -> Path:
         t0 = time.perf_counter()
         look = EdgeLook(shape=shape)
         grids.append(build_offset_grid(look))
-        keys.append(edge_model._look_key(look))
+        keys.append(edge_model.look_key(look))
         print(f"{shape}: {time.perf_counter() - t0:.1f} s, {np.isnan(grids[-1]).sum()} NaN")
     out = Path(edge_model.__file__).parents[1] / "data" / edge_model.OFFSET_GRID_FILE
     np.savez_compressed(out, theta_deg=edge_model.GRID_THETA_DEG, m=edge_model.GRID_M,

@@ -31,7 +31,7 @@ from cutterpose.geometry.holder import default_holder
 from cutterpose.geometry.pose import pose_errors
 from cutterpose.pipeline import measure
 from cutterpose.render.analytic import preset
-from cutterpose.render.sequence import _frame, approach_poses
+from cutterpose.render.sequence import approach_poses, render_frame
 from cutterpose.tracking import Tracker, approach_limits, approach_params
 
 
@@ -47,7 +47,7 @@ def render(out: Path, camera, holder, n, drop=(), jump_at=None, reuse: Path | No
             if src is not None and src.is_file() and (jump_at is None or k < jump_at):
                 f.write_bytes(src.read_bytes())
             else:
-                _, png = _frame((i, k, p, camera, holder, preset("easy"), "analytic", 0))
+                _, png = render_frame((i, k, p, camera, holder, preset("easy"), "analytic", 0))
                 f.write_bytes(png)
         files.append((k, p, f))
         print(f"  {out.name} frame {k}", file=sys.stderr, flush=True)

@@ -38,12 +38,12 @@ from cutterpose.geometry.camera import camera_from_dict
 from cutterpose.geometry.holder import holder_from_dict
 from cutterpose.geometry.pose import Pose, pose_errors, rotation_from_euler_deg
 from cutterpose.image import edge_model as em
-from cutterpose.image.edge_band import STEP_PX, _scan, fit_band, sample_band
+from cutterpose.image.edge_band import STEP_PX, fit_band, sample_band, scan_cost
 from cutterpose.pipeline import measure
 from cutterpose.solvers.edge_band import (
+    MIN_SD_PX,
     POSITIONS_PER_SEGMENT,
     SEGMENTS_PER_EDGE,
-    _sd,
     edge_noise_cov,
     fit_pose_design_points,
 )
@@ -77,7 +77,7 @@ def shifts_radius_known(bp, fit, view, r_true, n_corners) -> np.ndarray:
         k, fr = bp.edge[sel], bp.frac[sel][:, None, None]
         models = (1 - fr) * bl[k, 1] + fr * bl[(k + 1) % n_corners, 0]
         shifts = np.arange(-30, 31)
-        cost, _ = _scan(Y[sel], models, int(round(-w0[0] / STEP_PX)), w_idx, shifts)
+        cost, _ = scan_cost(Y[sel], models, int(round(-w0[0] / STEP_PX)), w_idx, shifts)
         out[sel] = shifts[np.argmin(cost[:, 0, :], axis=1)] * STEP_PX
     return out
 
@@ -158,7 +158,7 @@ def main() -> None:
                          positions=POSITIONS_PER_SEGMENT)
         fit = fit_band(bp, cam, holder, R, t, looks=looks)
         valid = bp.valid & np.isfinite(fit.best.cost) & np.isfinite(fit.best.shift_var_px2)
-        sd = _sd(fit.best)
+        sd = np.maximum(np.sqrt(fit.best.shift_var_px2), MIN_SD_PX)   # as dm+b weighs the points
         dof_a, cov_a = pose_from_shifts(bp, fit.best.shift_px, sd, valid, K, dof_true)
         a_rot, a_tr = errors(dof_a, R, t)
         rows["at truth"].append((a_rot, a_tr, rot_3sigma(cov_a)))

@@ -18,8 +18,8 @@ from cutterpose.image.edge_band import (
     _along_normals,
     _distorted_normals,
     _median_rows,
-    _scan,
     sample_band,
+    scan_cost,
 )
 
 CAM = default_camera("table1")
@@ -53,7 +53,7 @@ def test_scan_matches_least_squares(per_segment_shifts):
     Y = 30 + 2 * models[:, 0, 35:35 + G] + rng.normal(0, 1, (S, G))
     m0, w_idx = 60, np.arange(-25, -25 + G)
     shifts = (rng.integers(-5, 6, (S, 7)) if per_segment_shifts else np.arange(-3, 4))
-    cost, gain = _scan(Y, models, m0, w_idx, shifts)
+    cost, gain = scan_cost(Y, models, m0, w_idx, shifts)
     ref = _scan_by_definition(Y, models, m0, w_idx, shifts)
     fin = np.isfinite(ref)
     assert np.array_equal(fin, np.isfinite(cost))
@@ -77,8 +77,8 @@ def test_float32_scan_with_exact_minima_is_the_float64_scan():
               + 1e-4 * rng.normal(size=(S, L * M, G0))).astype(np.float32)
     Y = 30 + 2 * base[40:40 + G] + rng.normal(0, 1e-3, (S, G))
     m0, w_idx, shifts = 75, np.arange(-35, -35 + G), np.arange(-4, 5)
-    c32, g32 = _scan(Y, models, m0, w_idx, shifts, np.float32)
-    c64, g64 = _scan(Y, models, m0, w_idx, shifts)
+    c32, g32 = scan_cost(Y, models, m0, w_idx, shifts, np.float32)
+    c64, g64 = scan_cost(Y, models, m0, w_idx, shifts)
     idx, c, g = _exact_minima(Y, models, m0, w_idx, shifts, c32, g32, L)
     ref = np.argmin(c64.reshape(S, L, -1), axis=2)
     np.testing.assert_array_equal(idx, ref)
@@ -93,7 +93,7 @@ def test_float32_scan_with_exact_minima_is_the_float64_scan():
 
 def test_scan_refuses_gapped_samples():
     with pytest.raises(ValueError):
-        _scan(np.zeros((1, 3)), np.zeros((1, 1, 20), np.float32), 10, np.array([0, 2, 3]),
+        scan_cost(np.zeros((1, 3)), np.zeros((1, 1, 20), np.float32), 10, np.array([0, 2, 3]),
               np.arange(1))
 
 

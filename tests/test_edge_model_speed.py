@@ -72,10 +72,10 @@ def test_shipped_grid_is_current_and_close_to_the_exact_offsets():
     # stale grid (the model changed, the file did not): some nodes rebuilt and compared
     grids = em._shipped_grids()
     look = EdgeLook()
-    assert em._look_key(look) in grids and em._look_key(EdgeLook(shape="chamfer")) in grids
+    assert em.look_key(look) in grids and em.look_key(EdgeLook(shape="chamfer")) in grids
     it, im, ir = [20, 80], [5, 10], [8, 40, 90]
     fresh = build_offset_grid(look, em.GRID_THETA_DEG[it], em.GRID_M[im], em.GRID_RHO_PX[ir])
-    shipped = grids[em._look_key(look)][np.ix_(it, im, ir)]
+    shipped = grids[em.look_key(look)][np.ix_(it, im, ir)]
     assert np.median(np.abs(fresh - shipped)) < 0.005
     # interpolated offsets: close to the exact ones except near jumps of delta(r)
     for pose in POSES:

@@ -122,7 +122,7 @@ def test_no_holder_and_holder_out_of_view(easy):
 def test_fit_model_to_contour_recovers_the_projection():
     """Model-guided fallback: the homography fitted to a noisy contour with a bump (a stain)
     puts the model's corners on the true ones."""
-    from cutterpose.image.contour_model import _apply_h, fit_model_to_contour
+    from cutterpose.image.contour_model import apply_homography, fit_model_to_contour
 
     cam = small_camera()
     hol = default_holder()
@@ -133,7 +133,7 @@ def test_fit_model_to_contour_recovers_the_projection():
     c = c + rng.normal(0, 0.3, c.shape)
     c[100:130] += 12.0  # a detour of the contour around a stain: outliers
     H, assign, dist = fit_model_to_contour(c, cam, hol)
-    err = np.linalg.norm(_apply_h(H, hol.corners_mm) - true_ideal, axis=1)
+    err = np.linalg.norm(apply_homography(H, hol.corners_mm) - true_ideal, axis=1)
     assert err.max() < 0.3
     assert np.median(np.abs(dist)) < 0.5
 

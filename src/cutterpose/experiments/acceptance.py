@@ -33,7 +33,7 @@ import numpy as np
 
 from ..budget import Tolerance
 from ..errors import InputError
-from .field import BAD_ROT_DEG, BAD_TRANS_MM, _num, _read_budgets, _read_verdicts
+from .field import BAD_ROT_DEG, BAD_TRANS_MM, csv_number, read_budgets, read_verdicts
 from .report import read_trials_csv
 
 __all__ = ["acceptance_curve", "acceptance_markdown", "write_acceptance",
@@ -58,8 +58,8 @@ def acceptance_curve(folder, method: str = "dm+b", tolerances_deg=DEFAULT_TOLERA
         ``ceiling_good`` and ``ceiling_p95_0p1``.
     """
     folder = Path(folder)
-    verdicts = _read_verdicts(folder)
-    budgets = _read_budgets(folder)
+    verdicts = read_verdicts(folder)
+    budgets = read_budgets(folder)
     sel = [r for r in read_trials_csv(folder / "trials.csv") if r["method"] == method]
     if not sel:
         raise InputError(f"{folder}: no trials of method {method!r}")
@@ -70,8 +70,8 @@ def acceptance_curve(folder, method: str = "dm+b", tolerances_deg=DEFAULT_TOLERA
     verdict = [verdicts.get(k, (False, "no verdict")) for k in keys]
     # refused for anything the tolerance does not decide: refused at every tolerance
     other = np.array([not ok and not reason.startswith(BUDGET_REASON) for ok, reason in verdict])
-    pos3 = np.array([_num(budgets.get(k), "position_3sigma_mm") for k in keys])
-    ang3 = np.array([_num(budgets.get(k), "angle_3sigma_deg") for k in keys])
+    pos3 = np.array([csv_number(budgets.get(k), "position_3sigma_mm") for k in keys])
+    ang3 = np.array([csv_number(budgets.get(k), "angle_3sigma_deg") for k in keys])
     usable = has & ~other & np.isfinite(pos3) & np.isfinite(ang3)
     bad = (trans > BAD_TRANS_MM) | (rot > BAD_ROT_DEG)
     rows = []

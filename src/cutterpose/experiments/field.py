@@ -40,14 +40,15 @@ import numpy as np
 from ..errors import InputError
 from .report import BUDGET_STD_COLUMNS, DOF_NAMES, DOF_UNITS, ERR_COLUMNS, read_trials_csv
 
-__all__ = ["field_stats", "field_markdown", "BAD_TRANS_MM", "BAD_ROT_DEG"]
+__all__ = ["field_stats", "field_markdown", "BAD_TRANS_MM", "BAD_ROT_DEG", "read_verdicts",
+           "read_budgets", "csv_number"]
 
 #: an accepted pose beyond these is a wrong pose handed to the robot (issue 10)
 BAD_TRANS_MM = 1.0
 BAD_ROT_DEG = 0.5
 
 
-def _read_verdicts(folder: Path) -> dict:
+def read_verdicts(folder: Path) -> dict:
     path = folder / "verdicts.csv"
     if not path.is_file():
         raise InputError(f"{folder}: no verdicts.csv (run `cutterpose experiment images` into it)")
@@ -65,8 +66,8 @@ def _reason_class(reason: str) -> str:
 def field_stats(folder, name: str | None = None) -> list[dict]:
     """Statistics per method of one ``experiment images`` output folder (module docstring)."""
     folder = Path(folder)
-    verdicts = _read_verdicts(folder)
-    budgets = _read_budgets(folder)
+    verdicts = read_verdicts(folder)
+    budgets = read_budgets(folder)
     views = _read_views(folder)
     rows = read_trials_csv(folder / "trials.csv")
     out = []
@@ -145,7 +146,7 @@ def _retakes(views: dict, sel: list, acc, rot, trans) -> dict:
             if len(used) else 0}
 
 
-def _read_budgets(folder: Path) -> dict:
+def read_budgets(folder: Path) -> dict:
     """``budgets.csv`` as {(trial, method): row}; {} when absent (older runs)."""
     path = folder / "budgets.csv"
     if not path.is_file():
@@ -154,7 +155,7 @@ def _read_budgets(folder: Path) -> dict:
         return {(int(r["trial"]), r["method"]): r for r in csv.DictReader(fh)}
 
 
-def _num(row: dict, col: str) -> float:
+def csv_number(row: dict, col: str) -> float:
     v = row.get(col, "") if row else ""
     return float(v) if v not in ("", None) else math.nan
 
@@ -166,10 +167,10 @@ def _budget_honesty(budgets: dict, sel: list, m: str, E, rot, trans, acc) -> dic
     DOF (0.674 for a budget that is the error's covariance; smaller: the budget is wider than
     the errors), and the median squared Mahalanobis distance (5.35 for 6 DOF)."""
     b = [budgets.get((int(r["trial"]), m)) for r in sel]
-    S = np.array([[_num(x, c) for c in BUDGET_STD_COLUMNS] for x in b], float).reshape(-1, 6)
-    d2 = np.array([_num(x, "mahalanobis2") for x in b], float)
-    pos3 = np.array([_num(x, "position_3sigma_mm") for x in b], float)
-    ang3 = np.array([_num(x, "angle_3sigma_deg") for x in b], float)
+    S = np.array([[csv_number(x, c) for c in BUDGET_STD_COLUMNS] for x in b], float).reshape(-1, 6)
+    d2 = np.array([csv_number(x, "mahalanobis2") for x in b], float)
+    pos3 = np.array([csv_number(x, "position_3sigma_mm") for x in b], float)
+    ang3 = np.array([csv_number(x, "angle_3sigma_deg") for x in b], float)
     ok = np.all(np.isfinite(E), axis=1) & np.all(np.isfinite(S), axis=1) & (S > 0).all(axis=1)
     if not ok.any():
         return {"budget_n": 0}

@@ -44,7 +44,7 @@ def _homography_nominal(camera: Camera, holder: Holder) -> np.ndarray:
     return camera.K @ np.column_stack([R[:, 0], R[:, 1], t])
 
 
-def _apply_h(H: np.ndarray, p: np.ndarray) -> np.ndarray:
+def apply_homography(H: np.ndarray, p: np.ndarray) -> np.ndarray:
     q = np.column_stack([p, np.ones(len(p))]) @ H.T
     return q[:, :2] / q[:, 2:3]
 
@@ -81,7 +81,7 @@ def _fit_h_lines(model_lines, pts, w, system=None):
 
 def _edge_distances(H, model, pts):
     """Distance of each point to each projected model edge (segment), (M, N)."""
-    C = _apply_h(H, model)
+    C = apply_homography(H, model)
     a, d = C, np.roll(C, -1, axis=0) - C
     tt = np.clip(((pts[:, None, :] - a[None]) * d[None]).sum(axis=2) / (d ** 2).sum(axis=1),
                  0, 1)
@@ -106,7 +106,7 @@ def fit_model_to_contour(contour_ideal: np.ndarray, camera: Camera, holder: Hold
     model = np.asarray(holder.corners_mm, float)
     lines = holder.edge_lines
     H0 = _homography_nominal(camera, holder)
-    mi, mn = _moments(contour_ideal), _moments(_apply_h(H0, model))
+    mi, mn = _moments(contour_ideal), _moments(apply_homography(H0, model))
     if mi is None or mn is None:
         raise FeatureError("the inside contour encloses no area")
     (ai, ci, ti), (an, cn, tn) = mi, mn
@@ -155,7 +155,7 @@ def model_features(contours: list, sub, roi, camera: Camera, holder: Holder,
     n = len(model)
     tol = params.line_tol_px
     best = None
-    perimeter = np.linalg.norm(np.diff(_apply_h(_homography_nominal(camera, holder), model),
+    perimeter = np.linalg.norm(np.diff(apply_homography(_homography_nominal(camera, holder), model),
                                        axis=0, append=np.nan), axis=1)
     perimeter = float(np.nansum(perimeter))
     for level, cpx, cid in contours:
@@ -165,7 +165,7 @@ def model_features(contours: list, sub, roi, camera: Camera, holder: Holder,
             H, assign, dist = fit_model_to_contour(cid, camera, holder)
         except (FeatureError, np.linalg.LinAlgError, ValueError):
             continue
-        C = _apply_h(H, model)
+        C = apply_homography(H, model)
         lengths = np.linalg.norm(np.roll(C, -1, axis=0) - C, axis=1)
         inl = np.abs(dist) < tol
         covered = np.bincount(assign[inl], minlength=n)[:n]
@@ -267,7 +267,7 @@ def search_outline(img: np.ndarray, roi_origin, camera: Camera, holder: Holder,
     H = np.asarray(H0, float)
     frac = 0.0
     for W in params.search_gates_px:
-        C = _apply_h(H, model)
+        C = apply_homography(H, model)
         sign = np.sign(signed_area(C))
         nxt = np.roll(C, -1, axis=0)
         step = 1.0 if W >= 10 else 0.5
@@ -296,7 +296,7 @@ def search_outline(img: np.ndarray, roi_origin, camera: Camera, holder: Holder,
                  0.25 / 3.0 * float(np.median(peak[peak > 0])) if np.any(peak > 0) else 0.0)
         if W < 20 and params.edge_innermost > 0:
             # near the outline: the innermost rise of a broken edge, as the line fits take it
-            # (edges._half_max_centroids), not whichever of its rises is strongest here
+            # (edges.half_max_centroids), not whichever of its rises is strongest here
             ji = _innermost_peak(g, j, params.edge_innermost)
             pi = g[np.arange(len(g)), ji]
             # unless most innermost rises drown in the noise (a textured, stained face):
@@ -326,7 +326,7 @@ def search_outline(img: np.ndarray, roi_origin, camera: Camera, holder: Holder,
                 break
             q = np.column_stack([p, np.ones(len(p))]) @ np.linalg.inv(H).T
             H1 = _fit_h_lines(ln, p, np.sqrt(w) / np.abs(q[:, 2]), system)
-            moved = np.abs(_apply_h(H1, model) - C).max()
+            moved = np.abs(apply_homography(H1, model) - C).max()
             if not np.isfinite(moved) or moved > 2.0 * max(params.search_gates_px):
                 # the points do not hold the fit (few edge points, lumps and stains over much
                 # of the outline): it left the search's reach, keep the previous fit

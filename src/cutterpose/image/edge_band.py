@@ -61,7 +61,7 @@ from . import edge_model as em
 
 __all__ = ["BandProfiles", "BandFit", "BandLooks", "DesignEdgeOffsets", "sample_band",
            "fit_band", "band_looks", "profile_costs", "model_grid_px", "view_lean",
-           "CAL_RADII_MM"]
+           "CAL_RADII_MM", "scan_cost"]
 
 #: the radii the coarse scan tries (mm) and the fine step
 COARSE_RADII_MM = np.array([0.0, 0.25, 0.5, 0.75, 1.0, 1.25, 1.5, 2.0, 2.5, 3.0, 3.5, 4.0, 4.5,
@@ -487,7 +487,7 @@ def view_lean(view: em.EdgeView, edge: np.ndarray, frac: np.ndarray) -> np.ndarr
     return (1 - frac) * t[edge, 1] + frac * t[(edge + 1) % n, 0]
 
 
-def _scan(Y, models, m0, w_idx, shifts_idx, dtype=np.float64):
+def scan_cost(Y, models, m0, w_idx, shifts_idx, dtype=np.float64):
     """Cost of ``Y ~ a + b model(w - shift)`` for every segment, radius and shift.
 
     Y : (S, G) measured; models : (S, M, G0); w_idx : (G,) consecutive sample offsets in model
@@ -512,7 +512,7 @@ def _scan(Y, models, m0, w_idx, shifts_idx, dtype=np.float64):
         sh = np.broadcast_to(sh, (S, len(sh)))
     H = sh.shape[1]
     if np.any(np.diff(w_idx) != 1):
-        raise ValueError("_scan: the samples must be consecutive model steps")
+        raise ValueError("scan_cost: the samples must be consecutive model steps")
     start = m0 + int(w_idx[0]) - sh                                         # (S, H)
     inside = (start >= 0) & (start <= G0 - G)
     start = np.clip(start, 0, G0 - G)
@@ -550,7 +550,7 @@ EXACT_MARGIN = 1e-5
 
 def _exact_minima(Y, models, m0, w_idx, shifts_idx, cost, gain, groups: int):
     """The minimum of each segment's scan in each of ``groups`` equal parts of its rows
-    (``cost``, ``gain`` (S, groups * M, H) from a float32 :func:`_scan`), the near-ties (within
+    (``cost``, ``gain`` (S, groups * M, H) from a float32 :func:`scan_cost`), the near-ties (within
     :data:`EXACT_MARGIN` of ``|Yc|^2``) costed again in float64: the minimum's flat index over
     (M, H), its cost and gain, (S, groups) each, as a float64 scan finds them (the first of
     equal costs), at a float32 scan's price.
@@ -613,7 +613,7 @@ def _fit_looks(bp: BandProfiles, bank: _ModelBank, looks, coarse=None,
         models = _along_segments(bl, bp.edge, bp.frac).reshape(S, L * M, -1)
         # float32 products, the near-ties settled in float64: the coarse scan is the band
         # fit's largest (S, L M, H), and only its minima are used
-        cost, gain = _scan(Y[:, keep], models, m0, w_idx, shifts, np.float32)
+        cost, gain = scan_cost(Y[:, keep], models, m0, w_idx, shifts, np.float32)
         jb, c, g = _exact_minima(Y[:, keep], models, m0, w_idx, shifts, cost, gain, L)
         mi, hi = np.unravel_index(jb, (M, len(shifts)))                    # (S, L) each
         c = c * (G / len(w_idx))
@@ -642,7 +642,7 @@ def _fit_looks(bp: BandProfiles, bank: _ModelBank, looks, coarse=None,
     centre = np.rint(np.stack([c.shift_px for c in coarse]) / h).astype(int)  # (L, S)
     nh = 2 * FINE_SHIFT_STEPS + 1
     shifts = centre[..., None] + np.arange(-FINE_SHIFT_STEPS, FINE_SHIFT_STEPS + 1)
-    cost_all, gain_all = _scan(np.tile(Y, (L, 1)), models.reshape(L * S, nr, -1), m0, w_idx,
+    cost_all, gain_all = scan_cost(np.tile(Y, (L, 1)), models.reshape(L * S, nr, -1), m0, w_idx,
                                shifts.reshape(L * S, nh))
     cost_all = cost_all.reshape(L, S, nr, nh)
     gain_all = gain_all.reshape(L, S, nr, nh)
@@ -669,7 +669,7 @@ def _fit_looks(bp: BandProfiles, bank: _ModelBank, looks, coarse=None,
 
 def _look_fit(bp: BandProfiles, look, r, s, c, g, var) -> LookFit:
     c = np.where(bp.valid, c, np.inf)
-    rms = np.sqrt(c / len(bp.w_px))         # c >= 0: _scan clamps the residual sum
+    rms = np.sqrt(c / len(bp.w_px))         # c >= 0: scan_cost clamps the residual sum
     var = np.where(bp.valid, var, np.inf)
     return LookFit(look, r, s, c, g, rms, _trimmed_total(c, bp.valid), var)
 
@@ -829,7 +829,7 @@ def profile_costs(bp: BandProfiles, view: em.EdgeView, looks, radii_mm=CAL_RADII
     m0 = int(round(-w0[0] / h))
     w_idx = np.rint(bp.w_px / h).astype(int)
     shifts = np.rint(np.asarray(shifts_px, float) / h).astype(int)
-    cost, gain = zip(*(_scan(Y, _along_segments(bl, bp.edge, bp.frac), m0, w_idx, shifts)
+    cost, gain = zip(*(scan_cost(Y, _along_segments(bl, bp.edge, bp.frac), m0, w_idx, shifts)
                        for bl in bls))
     cost = np.stack(cost)
     cost[:, ~bp.valid] = np.inf

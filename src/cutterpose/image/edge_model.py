@@ -73,7 +73,7 @@ from scipy.interpolate import PchipInterpolator
 
 from ..errors import InputError
 from ..geometry.holder import Holder
-from .edges import _neighbours, _run_centroids
+from .edges import row_neighbours, run_centroids
 
 __all__ = ["EdgeLook", "EdgeView", "LOOK_VARIANTS", "edge_views", "profiles", "gradient_edge_px",
            "edge_offsets_mm", "OffsetTable", "model_corners_mm", "corner_offset_jacobian",
@@ -551,7 +551,7 @@ def gradient_edge_px(w_px: np.ndarray, blurred: np.ndarray, with_rival: bool = F
     specular line on the fillet can make a second edge almost as strong as the first: the
     refinement may then take either, :func:`edge_offsets_mm`).
 
-    ``innermost`` as in :func:`cutterpose.image.edges._half_max_centroids`: 0 the strongest
+    ``innermost`` as in :func:`cutterpose.image.edges.half_max_centroids`: 0 the strongest
     rise; ``f`` > 0 the first local maximum from the pocket side (small ``w``) reaching ``f`` of
     the strongest, its run ending at the valley before the next rise.
     """
@@ -563,13 +563,13 @@ def gradient_edge_px(w_px: np.ndarray, blurred: np.ndarray, with_rival: bool = F
     # the detector's own peak choice and half-maximum run (image.edges): the model must find
     # the edge the refinement finds
     if innermost > 0 and G >= 3:
-        gl, gr = _neighbours(g)
+        gl, gr = row_neighbours(g)
         cand = (g >= gl) & (g > gr) & (g >= innermost * g.max(axis=1)[:, None])
         j = np.where(cand.any(axis=1), np.argmax(cand, axis=1), np.argmax(g, axis=1))
-        cen, _, left, right = _run_centroids(g, j, gl, gr, positions=wg, bounds=True)
+        cen, _, left, right = run_centroids(g, j, gl, gr, positions=wg, bounds=True)
     else:
         j = np.argmax(g, axis=1)
-        cen, _, left, right = _run_centroids(g, j, positions=wg, bounds=True)
+        cen, _, left, right = run_centroids(g, j, positions=wg, bounds=True)
     peak = g[np.arange(len(g)), j]
     cen = np.where(peak > 0, cen, np.nan).reshape(shape)
     if not with_rival:
@@ -769,7 +769,7 @@ def build_offset_grid(look: EdgeLook = EdgeLook(), theta_deg=GRID_THETA_DEG, m=G
     return out[:n].reshape(len(theta_deg), len(m), len(rho_px))
 
 
-def _look_key(look: EdgeLook) -> str:
+def look_key(look: EdgeLook) -> str:
     return repr(sorted(asdict(look).items()))
 
 
@@ -795,7 +795,7 @@ def tabulated_w_px(radius_mm, view: EdgeView, look: EdgeLook = EdgeLook()):
     look is not tabulated or a view or radius lies outside the grid (then use the exact model).
     The interpolation differs from the exact model by ~0.001 mm median, ~0.01 mm p95 in
     ``delta``; more only where two rises of the profile swap (where ``delta(r)`` jumps)."""
-    grid = _shipped_grids().get(_look_key(look))
+    grid = _shipped_grids().get(look_key(look))
     if grid is None:
         return None
     theta, m = _view_coordinates(view)

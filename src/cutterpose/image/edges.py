@@ -77,7 +77,7 @@ def _robust_line(p: np.ndarray, iterations: int = 5):
     return c, d, n
 
 
-def _half_max_centroids(g: np.ndarray, o0: float, step: float,
+def half_max_centroids(g: np.ndarray, o0: float, step: float,
                         groups: np.ndarray | None = None, n_groups: int = 0,
                         innermost: float = 0.0, first: int = 0):
     """Sub-pixel edge position of each profile derivative ``g`` (rows): the centroid of
@@ -104,16 +104,16 @@ def _half_max_centroids(g: np.ndarray, o0: float, step: float,
     """
     rows_all = np.arange(len(g))
     if innermost > 0 and g.shape[1] >= 3:
-        gl, gr = _neighbours(g)
+        gl, gr = row_neighbours(g)
         cand = (g >= gl) & (g > gr) & (g >= innermost * g.max(axis=1)[:, None])
         cand[:, :first] = False
         j = np.where(cand.any(axis=1), np.argmax(cand, axis=1), np.argmax(g, axis=1))
         # the run also stops at a valley towards the next rise, so that two rises merged
         # above half height are not averaged
-        cen, ok = _run_centroids(g, j, gl, gr)
+        cen, ok = run_centroids(g, j, gl, gr)
     else:
         j = np.argmax(g, axis=1)
-        cen, ok = _run_centroids(g, j)
+        cen, ok = run_centroids(g, j)
     peak = g[rows_all, j]
     if groups is not None:  # the profiles of several lines at once: the median per line
         med = group_median(peak[ok], groups[ok], n_groups)
@@ -128,7 +128,7 @@ def _nearest_rise_centroids(g: np.ndarray, o0: float, step: float, o_expected: n
                             fraction: float, gate_px: float):
     """Per row of ``g``: the rise (a local maximum reaching ``fraction`` of the row's maximum)
     whose peak is nearest ``o_expected`` (same units as the offsets ``o0 + step * index``), and
-    its half-maximum centroid as in :func:`_half_max_centroids` (the run split at valleys).
+    its half-maximum centroid as in :func:`half_max_centroids` (the run split at valleys).
     Rows with no rise within ``gate_px`` of ``o_expected`` are left out.
 
     Returns
@@ -136,19 +136,19 @@ def _nearest_rise_centroids(g: np.ndarray, o0: float, step: float, o_expected: n
     offsets : edge positions of the kept rows; rows : their indices.
     """
     G = g.shape[1]
-    gl, gr = _neighbours(g)
+    gl, gr = row_neighbours(g)
     gmax = g.max(axis=1)
     cand = (g >= gl) & (g > gr) & (g >= fraction * gmax[:, None]) & (g > 0)
     pos = o0 + step * np.arange(G)
     dist = np.where(cand, np.abs(pos[None, :] - o_expected[:, None]), np.inf)
     j = np.argmin(dist, axis=1)
     near = dist[np.arange(len(g)), j] <= gate_px
-    cen, ok = _run_centroids(g, j, gl, gr)
+    cen, ok = run_centroids(g, j, gl, gr)
     rows = np.nonzero(ok & near)[0]
     return o0 + step * cen[rows], rows
 
 
-def _neighbours(g: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def row_neighbours(g: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Each sample's left and right neighbour along the rows (+inf / -inf past the ends)."""
     gl, gr = np.empty_like(g), np.empty_like(g)
     gl[:, 0], gl[:, 1:] = np.inf, g[:, :-1]
@@ -156,7 +156,7 @@ def _neighbours(g: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return gl, gr
 
 
-def _run_centroids(g: np.ndarray, j: np.ndarray, gl: np.ndarray | None = None,
+def run_centroids(g: np.ndarray, j: np.ndarray, gl: np.ndarray | None = None,
                    gr: np.ndarray | None = None, positions: np.ndarray | None = None,
                    bounds: bool = False):
     """Centroid of ``g - g_j / 2`` over the run round peak ``j`` of each row where
@@ -241,7 +241,7 @@ def _refine_pass(img, roi_origin, camera, lines_ideal, spans, inward, params, of
         if params.refine_sigma_px > 0:
             prof = gaussian_filter1d(prof, params.refine_sigma_px / 0.25, axis=1)
         g = np.diff(prof, axis=1)  # derivative at offsets[:-1] + 0.125
-        o, rows = _half_max_centroids(g, offsets[0] + 0.125, 0.25)
+        o, rows = half_max_centroids(g, offsets[0] + 0.125, 0.25)
         pts = base[rows] + o[:, None] * n_out
         if len(pts) < 5:
             edges.append(np.zeros((0, 2)))
@@ -623,7 +623,7 @@ def robust_edge_lines(img: np.ndarray, roi_origin, camera: Camera, pred_ideal: n
     ``k`` runs from corner ``k`` to ``k + 1``. Along each predicted edge, away from its
     corners by ``corner_trim_px``, a profile every ``refine_step_px`` across
     ``+-refine_half_width_px`` (0.25 px steps, unfiltered image) gives an edge point (centroid
-    of the half-maximum run of the dark-to-bright derivative, :func:`_half_max_centroids`).
+    of the half-maximum run of the dark-to-bright derivative, :func:`half_max_centroids`).
     Points on slurry, on the cutter's silhouette, on a chip or a highlight are outliers: the
     line starts from the least-median-of-squares line (:func:`lmeds_line`, the predicted line
     among the hypotheses) and is refined by Tukey IRLS with a MAD scale (:func:`tukey_line`).
@@ -665,7 +665,7 @@ def robust_edge_lines(img: np.ndarray, roi_origin, camera: Camera, pred_ideal: n
     prof = sample_profiles(img, roi_origin, camera, base, -n_in[which], offsets)
     if params.refine_sigma_px > 0:
         prof = smooth_rows(prof, params.refine_sigma_px / 0.25)
-    o, rows = _half_max_centroids(np.diff(prof, axis=1), offsets[0] + 0.125, 0.25, which, n,
+    o, rows = half_max_centroids(np.diff(prof, axis=1), offsets[0] + 0.125, 0.25, which, n,
                                    innermost=params.edge_innermost,
                                    first=int(np.searchsorted(offsets[:-1] + 0.125,
                                                              -params.max_line_shift_px)))

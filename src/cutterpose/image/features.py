@@ -50,7 +50,7 @@ from ..errors import FeatureError, InputError
 from ..geometry.camera import Camera
 from ..geometry.holder import Holder
 from .contour import contour_and_segments, initial_lines, threshold_levels
-from .contour_model import _apply_h, check_edge_support, model_features, search_outline
+from .contour_model import apply_homography, check_edge_support, model_features, search_outline
 from .corners import (
     check_corner_angles,
     check_corners_on_contour,
@@ -236,7 +236,7 @@ def detect_features_field(image: np.ndarray, camera: Camera, holder: Holder,
     lap("roi")
     model = np.asarray(holder.corners_mm, float)
     h, w = image.shape
-    outline = camera.distort_px(_apply_h(H0, model))
+    outline = camera.distort_px(apply_homography(H0, model))
     m = max(params.search_gates_px) + 0.1 * float(np.ptp(outline, axis=0).max()) + 16
     u0, v0 = np.maximum(np.floor(outline.min(axis=0) - m), 0).astype(int)
     u1, v1 = np.minimum(np.ceil(outline.max(axis=0) + m) + 1, [w, h]).astype(int)
@@ -252,7 +252,7 @@ def detect_features_field(image: np.ndarray, camera: Camera, holder: Holder,
                            f"{100 * support_all:.0f} % of its length (< "
                            f"{100 * params.min_outline_support:.0f} %): holder hidden, partly "
                            "out of view, or not in view")
-    pred = _apply_h(H, model)
+    pred = apply_homography(H, model)
     pred_px = camera.distort_px(pred)
     near = ~camera.in_image(pred_px, params.border_margin_px)
     if near.any():

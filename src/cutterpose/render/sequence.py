@@ -37,7 +37,7 @@ from ..geometry.pose import Pose
 from .analytic import RenderSettings, auto_exposed, preset, render_holder
 
 __all__ = ["ENGINES", "PRESET_LOOKUP", "engine", "engine_preset", "approach_poses",
-           "render_sequence"]
+           "render_sequence", "render_frame"]
 
 
 def _pbr_module():
@@ -117,7 +117,7 @@ def approach_poses(n_frames: int = 60, z_start_mm: float = 900.0, z_end_mm: floa
     return poses, index
 
 
-def _frame(args):
+def render_frame(args):
     """Render one frame (a job of :func:`cutterpose.parallel.run_jobs`): (entry, PNG bytes)."""
     i, k, pose, camera, holder, settings, eng, seed = args[:8]
     extra = args[8] if len(args) > 8 else {}
@@ -185,7 +185,7 @@ def render_sequence(out_dir, n_frames: int = 60, z_start_mm: float = 900.0,
         if progress is not None:
             progress(done[0], len(jobs))
 
-    images = run_jobs(_frame, jobs, workers, scheduler, write, store=lambda r: r[0])
+    images = run_jobs(render_frame, jobs, workers, scheduler, write, store=lambda r: r[0])
     doc = {"camera": camera.to_dict(), "holder": holder.to_dict(), "seed": int(seed),
            "presets": {settings.name: asdict(settings)},
            "sequence": {"n_frames": n_frames, "z_start_mm": z_start_mm, "z_end_mm": z_end_mm,

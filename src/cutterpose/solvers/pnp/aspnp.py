@@ -86,16 +86,16 @@ def normalise_object(P: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
 # ---- the four cases: fixed components, polynomial structure (built once) --------------------
 
 _NAN = np.nan
-_CASE1_FIXED = np.array([1.0, _NAN, _NAN, _NAN])
-_CASE2_FIXED = np.array([0.0, 1.0, _NAN, _NAN])
+CASE1_FIXED = np.array([1.0, _NAN, _NAN, _NAN])
+CASE2_FIXED = np.array([0.0, 1.0, _NAN, _NAN])
 _CASE3_FIXED = np.array([0.0, 0.0, 1.0, _NAN])
 _SUP1, _SUP2, _SUP3 = monomials(3, 3), monomials(2, 3), monomials(1, 3)
-_MAP1 = quadratic_form_gradient_map(MU_EXPS, _CASE1_FIXED, _SUP1)  # (3, 20, 100)
-_MAP2 = quadratic_form_gradient_map(MU_EXPS, _CASE2_FIXED, _SUP2)  # (2, 10, 100)
+MAP1 = quadratic_form_gradient_map(MU_EXPS, CASE1_FIXED, _SUP1)  # (3, 20, 100)
+MAP2 = quadratic_form_gradient_map(MU_EXPS, CASE2_FIXED, _SUP2)  # (2, 10, 100)
 _MAP3 = quadratic_form_gradient_map(MU_EXPS, _CASE3_FIXED, _SUP3)  # (1, 4, 100)
 _SOLVER1 = MacaulaySolver(_SUP1, degree=8, n_solutions=27)
 _SOLVER2 = MacaulaySolver(_SUP2, degree=7, n_solutions=9)
-_SYS1, _SYS2, _SYS3 = PolySystem(_SUP1), PolySystem(_SUP2), PolySystem(_SUP3)
+SYS1, SYS2, _SYS3 = PolySystem(_SUP1), PolySystem(_SUP2), PolySystem(_SUP3)
 
 #: reality test on a computed root, relative to its size
 IMAG_TOL = 1e-6
@@ -151,7 +151,7 @@ def stationary_points(Pn: np.ndarray, m: np.ndarray) -> dict:
     g = M.ravel()
     qs, cases, minima, info = [], [], [], {}
     for case, (mp, solver, system, fixed) in enumerate(
-            ((_MAP1, _SOLVER1, _SYS1, _CASE1_FIXED), (_MAP2, _SOLVER2, _SYS2, _CASE2_FIXED),
+            ((MAP1, _SOLVER1, SYS1, CASE1_FIXED), (MAP2, _SOLVER2, SYS2, CASE2_FIXED),
              (_MAP3, None, _SYS3, _CASE3_FIXED)), start=1):
         coef = mp @ g
         if solver is not None:

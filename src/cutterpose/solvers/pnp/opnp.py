@@ -45,7 +45,7 @@ _W_EXPS = np.vstack([np.zeros((1, 4), np.int64), MU_EXPS])  # w = (1, mu)
 _SUPPORT = monomials(4, 3, "odd")  # the 4 linear and 20 cubic monomials
 _GRAD_MAP = quadratic_form_gradient_map(_W_EXPS, np.full(4, np.nan), _SUPPORT)  # (4, 24, 121)
 _SOLVER = MacaulaySolver(_SUPPORT, degree=9, n_solutions=40, odd=True)
-_SYSTEM = PolySystem(_SUPPORT)
+SYSTEM = PolySystem(_SUPPORT)
 
 #: reality test on a computed root, relative to its size
 IMAG_TOL = 1e-6
@@ -93,10 +93,10 @@ def stationary_points(Pn: np.ndarray, m: np.ndarray) -> dict:
     size = np.linalg.norm(roots, axis=1)
     ok &= size > 0
     ok[ok] &= np.abs(roots[ok].imag).max(axis=1) <= IMAG_TOL * size[ok]
-    q = _SYSTEM.newton_polish(coef, roots[ok].real)
+    q = SYSTEM.newton_polish(coef, roots[ok].real)
     nq = np.linalg.norm(q, axis=1)
     scale = np.abs(coef).sum(axis=1).max() * (nq + nq ** 3)
-    q = q[(nq > 0) & (np.linalg.norm(_SYSTEM.evaluate(coef, q), axis=1) <= GRAD_TOL * scale)]
+    q = q[(nq > 0) & (np.linalg.norm(SYSTEM.evaluate(coef, q), axis=1) <= GRAD_TOL * scale)]
     # one representative per pair +-q, duplicates (a root read twice) removed
     q = q * np.where(q[np.arange(len(q)), np.argmax(np.abs(q), axis=1)] < 0, -1.0, 1.0)[:, None]
     keep = []
@@ -105,7 +105,7 @@ def stationary_points(Pn: np.ndarray, m: np.ndarray) -> dict:
             keep.append(i)
     q = q[keep]
     if len(q):
-        H = _SYSTEM.jacobian(coef, q)
+        H = SYSTEM.jacobian(coef, q)
         ev = np.linalg.eigvalsh(0.5 * (H + np.swapaxes(H, 1, 2)))
         minimum = ev[:, 0] >= -HESS_TOL * np.abs(ev).max(axis=1)
     else:
