@@ -114,6 +114,17 @@ def frame_from_buffer(buffer, width: int, height: int, where: str = "raw frame",
     ------
     ImageError
         An unknown pixel format, or a buffer that is not exactly one frame of it.
+
+    Examples
+    --------
+    >>> frame_from_buffer(bytes(range(12)), 4, 3)
+    array([[ 0,  1,  2,  3],
+           [ 4,  5,  6,  7],
+           [ 8,  9, 10, 11]], dtype=uint8)
+    >>> frame_from_buffer(bytes(range(12)), 5, 3)
+    Traceback (most recent call last):
+    ...
+    cutterpose.errors.ImageError: raw frame: raw frame has 12 bytes but 5 x 3 Mono8 needs 15
     """
     fmt = _format(pixel_format, where)
     if isinstance(buffer, np.ndarray):

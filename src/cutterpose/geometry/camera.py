@@ -586,7 +586,22 @@ def matrix_field(v, field: str, where: str) -> np.ndarray:
 
 def default_camera(which: str = "table1") -> Camera:
     """The bundled cameras: ``"table1"`` (division model of the paper's Table 1) or
-    ``"synthetic"`` (pinhole of the synthetic experiments)."""
+    ``"synthetic"`` (pinhole of the synthetic experiments).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from cutterpose import Pose, default_holder
+    >>> camera = default_camera("table1")
+    >>> camera.model, camera.image_size_px
+    ('division', (4112, 3008))
+    >>> X_cam = Pose.nominal().apply(default_holder().points_holder_mm)   # mm, camera frame
+    >>> uv_px = camera.project(X_cam)                   # observed (distorted) pixels
+    >>> uv_px[0].round(2)
+    array([1590.66, 1107.12])
+    >>> bool(np.allclose(camera.normalize_px(uv_px), X_cam[:, :2] / X_cam[:, 2:]))
+    True
+    """
     from importlib import resources
 
     names = {"table1": "camera_table1.json", "synthetic": "camera_synthetic.json"}

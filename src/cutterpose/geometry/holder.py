@@ -256,6 +256,17 @@ def load_holder(path) -> Holder:
 
 
 def default_holder() -> Holder:
-    """The bundled reference holder (a copy of ``shared/spec/holder.json``)."""
+    """The bundled reference holder (a copy of ``shared/spec/holder.json``).
+
+    Examples
+    --------
+    >>> holder = default_holder()
+    >>> holder.n_corners, holder.area_mm2                    # the pocket's corners, mm^2
+    (20, 57600.0)
+    >>> holder.outer_length_x_mm, holder.outer_width_y_mm
+    (480.0, 260.0)
+    >>> holder.points_holder_mm[0]                           # corner 0, top face Z = 0
+    array([-120.,  -90.,    0.])
+    """
     text = resources.files("cutterpose.data").joinpath("holder.json").read_text()
     return holder_from_dict(json.loads(text), where="holder.json")

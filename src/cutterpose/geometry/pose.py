@@ -142,6 +142,18 @@ class Pose:
     R : (3, 3) rotation matrix.
     t_mm : (3,) translation in millimetres.
     to_frame, from_frame : frame names; the default is the holder in the camera frame.
+
+    Examples
+    --------
+    >>> T = Pose.from_euler(2.0, -1.0, 0.5, 3.0, -4.0, 600.0)   # deg, deg, deg, mm, mm, mm
+    >>> T.name, T.inverse().name
+    ('T_cam_holder', 'T_holder_cam')
+    >>> [round(float(v), 9) for v in T.dof]
+    [2.0, -1.0, 0.5, 3.0, -4.0, 600.0]
+    >>> T.apply([[0.0, 0.0, 0.0]])                  # the holder's origin in the camera frame
+    array([[  3.,  -4., 600.]])
+    >>> T.inverse().apply(T.apply([[10.0, 20.0, 0.0]])).round(9) + 0.0
+    array([[10., 20.,  0.]])
     """
 
     R: np.ndarray
