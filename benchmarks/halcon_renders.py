@@ -98,6 +98,9 @@ def main():
     ap.add_argument("--preset", default="easy")
     ap.add_argument("--out", default=None, help="folder for the rendered images")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--write-poses", default=None, help="write the hexagonal plate's poses "
+                    "(T_cam_plate, protocol CSV) and the rendering camera (.dat) to this folder "
+                    "for `cutterpose render-plate --plate-poses` and stop")
     a = ap.parse_args()
     data = resources.files("cutterpose.data")
     settings = preset(a.preset)
@@ -110,6 +113,16 @@ def main():
     hex_poses = (sample_plate_poses(CAMERA, n_full, hexp, distance_mm=(230, 330), seed=a.seed)
                  + _partial_poses(hexp, a.views // 3, a.seed))
     # the CirclePlate's sampler keeps the triangular mark in view too
+    if a.write_poses:
+        from cutterpose.geometry.camera_files import save_camera
+        from cutterpose.robot.poses import write_poses
+
+        folder = Path(a.write_poses)
+        folder.mkdir(parents=True, exist_ok=True)
+        write_poses(folder / "hexplate_poses.csv", hex_poses)
+        save_camera(CAMERA, folder / "rendering_camera.dat")
+        print(f"wrote {folder / 'hexplate_poses.csv'} and {folder / 'rendering_camera.dat'}")
+        return
     cal_poses = sample_plate_poses(CAMERA, a.views, caltab.geometry.plate,
                                    distance_mm=(750, 1000),
                                    seed=a.seed)
