@@ -2,7 +2,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test bench lint clean
+.PHONY: demo test bench lint clean mutate
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || python3 -m venv $(VENV)
@@ -21,6 +21,40 @@ bench: $(STAMP)
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check src tests benchmarks
+
+# mutation testing of the code that decides what the robot gets (docs/results/mutation.md):
+# mutmut 3 ([tool.mutmut] in pyproject.toml: the files and the fast test selection); one
+# worker by default (MUTATE_JOBS=2 on an idle 2-core machine halves the time). The survivors'
+# table: mutants/survivors.md
+MUTATE_JOBS ?= 1
+MUTATE_TARGETS ?= \
+	'cutterpose.budget.*' \
+	'cutterpose.pipeline.x__verdict__*' 'cutterpose.pipeline.x_band_budget__*' \
+	'cutterpose.pipeline.x_band_verdict__*' 'cutterpose.pipeline.x_edge_wear_effect__*' \
+	'cutterpose.pipeline.x_edge_break_effect__*' 'cutterpose.pipeline.x_fit_offset__*' \
+	'cutterpose.pipeline.x__least_squares_step__*' 'cutterpose.pipeline.x__noise_cov__*' \
+	'cutterpose.pipeline.x__pose_cov__*' 'cutterpose.pipeline.x_pose_std__*' \
+	'cutterpose.pipeline.x__corner_fit__*' 'cutterpose.pipeline.xǁQualityLimitsǁ*' \
+	'cutterpose.geometry.pose.*' \
+	'cutterpose.geometry.camera.xǁCameraǁ*' 'cutterpose.geometry.camera.xǁDivisionCameraǁ*' \
+	'cutterpose.geometry.camera.xǁPinholeCameraǁ*' \
+	'cutterpose.solvers.edge_band.x_variance_components__*' \
+	'cutterpose.solvers.edge_band.x_edge_noise_cov__*' \
+	'cutterpose.solvers.edge_band.x__look_spread__*' \
+	'cutterpose.solvers.edge_radius.x_model_offset_spread__*' \
+	'cutterpose.solvers.edge_radius.x_per_edge_jacobian__*' \
+	'cutterpose.robot.frames.*' 'cutterpose.robot.grasp.*' 'cutterpose.robot.locate.*' \
+	'cutterpose.calibration.handeye.x__to_own__*' 'cutterpose.calibration.handeye.x__verdict__*' \
+	'cutterpose.calibration.handeye.x_load_handeye__*' \
+	'cutterpose.calibration.handeye.xǁHandEyeResultǁ*' \
+	'cutterpose.experiments.report.x_trial_rows__*' 'cutterpose.experiments.report.x_summarize__*' \
+	'cutterpose.experiments.report.x__std__*' 'cutterpose.experiments.report.x__mean__*' \
+	'cutterpose.experiments.report.x__pct__*'
+
+mutate: $(STAMP)
+	$(VENV)/bin/mutmut run --max-children $(MUTATE_JOBS) $(MUTATE_TARGETS)
+	$(PY) benchmarks/mutation_report.py $(MUTATE_TARGETS) > mutants/survivors.md
+	@echo "survivors: mutants/survivors.md"
 
 clean:
 	rm -rf $(VENV) build *.egg-info src/*.egg-info

@@ -170,7 +170,7 @@ def test_budget_in_json_covariance_and_grasp_point():
     bf = far.quality.budget
     assert bf.position_3sigma_mm > m.quality.budget.position_3sigma_mm
     # ... by exactly the spread of that point under the stated covariance (Monte Carlo)
-    pos, ang, _ = mc_figures(far.pose.dof, bf.dof_cov, (300.0, 0.0, 0.0), n=100_000)
+    pos, ang, _ = mc_figures(far.pose.dof, bf.dof_cov, (300.0, 0.0, 0.0), n=50_000)
     assert bf.position_3sigma_mm == pytest.approx(pos, rel=0.015)
     assert bf.angle_3sigma_deg == pytest.approx(ang, rel=0.015)
 

@@ -93,7 +93,10 @@ def bound_3sigma(cov3) -> float:
     """``3 sqrt(largest eigenvalue)`` of a 3x3 covariance: the 3-sigma bound along the worst
     direction. The norm of a Gaussian error stays below it with probability >= 97.1 % (equal
     eigenvalues: chi-square, 3 DOF, at 9) up to 99.7 % (one dominant direction)."""
-    return 3.0 * math.sqrt(max(float(np.linalg.eigvalsh(np.asarray(cov3, float))[-1]), 0.0))
+    C = np.asarray(cov3, float)
+    if not np.all(np.isfinite(C)):  # no usable uncertainty: unbounded (eigvalsh would raise)
+        return math.inf
+    return 3.0 * math.sqrt(max(float(np.linalg.eigvalsh(C)[-1]), 0.0))
 
 
 @dataclass(frozen=True)

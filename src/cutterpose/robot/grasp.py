@@ -121,7 +121,10 @@ def _axes_text(C3: np.ndarray, R_cam_base: np.ndarray, unit: str, scale: float =
 
 
 def _shares(parts: dict, C: np.ndarray) -> dict:
-    """Share of each source's variance along the worst direction of ``C``."""
+    """Share of each source's variance along the worst direction of ``C`` (none when ``C``
+    is not finite: no direction is the worst)."""
+    if not np.all(np.isfinite(C)):
+        return {}
     w, V = np.linalg.eigh(C)
     v = V[:, -1]
     tot = max(float(v @ C @ v), 1e-300)
