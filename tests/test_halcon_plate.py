@@ -178,7 +178,7 @@ def test_polynomial_calibration_on_renders(hexplate):
         ids.append(det.ids)
         pts.append(det.points_px)
     res = calibrate_views(hexplate, ids, pts, CAM.image_size_px, model="polynomial",
-                          pixel_height_m=4.8e-6, bias_rounds=1)
+                          pixel_height_m=4.8e-6, bias_rounds=0)
     cam = res.camera
     assert isinstance(cam, PolynomialCamera)
     assert abs(cam.focal_length_m / CAM.focal_length_m - 1) < 0.005
@@ -224,3 +224,21 @@ def test_calibrate_polynomial_model_on_the_caltab():
     assert res.rms_px < 0.03 and len(res.per_image_rms_px) == 6
     with pytest.raises(InputError, match="polynomial"):
         calibrate(pts, plate, CAM.image_size_px, model="fisheye")
+
+
+def test_dark_on_light_plate(tmp_path):
+    """The other polarity (HALCON's ``*_dark_on_light`` plates): dark marks, light holes."""
+    d = hexagonal_description(9, 11, 0.004, [2, 6], [3, 7], polarity="dark_on_light")
+    path = tmp_path / "dark.cpd"
+    write_plate_description(d, path)
+    plate = HalconPlate.from_file(path)
+    assert plate.geometry.polarity == "dark_on_light"
+    pose = sample_plate_poses(CAM, 1, plate, distance_mm=(300, 350), seed=1)[0]
+    img = render_plate(CAM, pose, plate)
+    det = plate.detect(img)
+    assert det and len(det.ids) == 99 and det.info["finders"] == 2
+    truth = CAM.project(pose.apply(plate.points_target_mm[det.ids]))
+    assert np.max(np.linalg.norm(det.points_px - truth, axis=1)) < 0.1
+    # the light-on-dark description of the same layout does not match the image
+    d.polarity = "light_on_dark"
+    assert not HalconPlate(HexagonalPlate(d)).detect(img)
