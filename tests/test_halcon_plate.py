@@ -207,6 +207,16 @@ def test_target_interface(tmp_path):
     assert HalconPlate.from_dict(hexp.to_dict()).n_points == 255
     with pytest.raises(ModelFileError, match="file"):
         HalconPlate.from_dict({"kind": "halcon"})
+    # a target file naming the description beside it (as render-plate writes target.yaml)
+    from cutterpose.calibration.targets import load_target, save_target
+
+    (tmp_path / "plate.cpd").write_text((DATA / "hexplate_15x17_2.5mm.cpd").read_text())
+    (tmp_path / "target.yaml").write_text("kind: halcon\nfile: plate.cpd\n")
+    assert load_target(tmp_path / "target.yaml").n_points == 255
+    save_target(hexp, tmp_path / "again.yaml")
+    assert load_target(tmp_path / "again.yaml").hexagonal
+    with pytest.raises(ModelFileError, match="not found"):
+        HalconPlate.from_dict({"kind": "halcon", "file": "nowhere.cpd"})
 
 
 def test_calibrate_polynomial_model_on_the_caltab():

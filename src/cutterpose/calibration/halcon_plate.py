@@ -500,7 +500,7 @@ class HalconPlate(Target):
     triangle); ``.cpd`` plates by their finder patterns
     (:func:`~cutterpose.calibration.halcon_finder.detect_hexagonal`, partial views with ids).
     In a target file: ``{kind: halcon, file: path/to/plate.cpd}`` (a relative path is taken
-    from the working directory).
+    from the target file's folder, else from the working directory).
     """
 
     kind = "halcon"
@@ -575,7 +575,7 @@ class HalconPlate(Target):
 
     # --- description -------------------------------------------------------------------------
     def to_dict(self) -> dict:
-        return {"kind": self.kind, "file": str(self.path) if self.path else None,
+        return {"kind": self.kind, "file": str(self.path.resolve()) if self.path else None,
                 "plate": "hexagonal" if self.hexagonal else "rectangular",
                 "marks": self.n_points}
 
@@ -584,7 +584,13 @@ class HalconPlate(Target):
         f = d.get("file") if isinstance(d, dict) else None
         if not f:
             raise ModelFileError(f"{where}: a halcon target needs 'file' (a .descr or .cpd)")
-        return cls.from_file(f)
+        path = Path(str(f))
+        beside = Path(where).parent / path  # relative to the target file's folder first
+        if not path.is_absolute() and beside.is_file():
+            path = beside
+        if not path.is_file():
+            raise ModelFileError(f"{where}: HALCON description file not found: {f}")
+        return cls.from_file(path)
 
     @classmethod
     def from_spec(cls, fields, options):

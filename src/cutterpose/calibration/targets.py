@@ -60,7 +60,7 @@ DEFAULT_TARGET_SPEC = "caltab:7x7:30"
 
 # kind -> class; filled by register_target in the modules of _BUILTIN_MODULES
 TARGET_KINDS: dict[str, type[Target]] = {}
-_BUILTIN_MODULES = (".circle_grids", ".boards")
+_BUILTIN_MODULES = (".circle_grids", ".boards", ".halcon_plate")
 # file suffix -> (module, class) read lazily, so this module works without them
 _FILE_KINDS = {".descr": (".halcon_plate", "HalconPlate"), ".cpd": (".halcon_plate", "HalconPlate")}
 
