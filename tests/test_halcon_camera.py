@@ -191,3 +191,27 @@ def test_polynomial_conversions(tmp_path):
     assert not conv.exact and conv.max_error_px < 0.5
     with pytest.raises(CameraFileError, match="polynomial"):
         write_ros(cam, tmp_path / "x.ros.yaml")
+
+
+def test_opencv_to_halcon_polynomial(tmp_path):
+    """An OpenCV camera with tangential terms: the polynomial model follows it closely, the
+    division model (no decentering) cannot; the CLI writes either on request."""
+    from typer.testing import CliRunner
+
+    from cutterpose.cli import app
+    from cutterpose.geometry.camera import OpenCVCamera
+    from cutterpose.geometry.camera_files import to_division, to_polynomial
+
+    K = np.array([[1400.0, 0, 650.0], [0, 1400.0, 470.0], [0, 0, 1]])
+    cv = OpenCVCamera(K, np.array([-0.2, 0.08, 0.001, -0.0008, 0.0]), (1280, 960))
+    poly = to_polynomial(cv, 4.8e-6)
+    div = to_division(cv, 4.8e-6)
+    assert isinstance(poly.camera, PolynomialCamera) and not poly.exact
+    assert poly.max_error_px < 0.5 < 1.0 < div.max_error_px  # 0.22 and 2.1 px
+    src = tmp_path / "cv.json"
+    save_camera(cv, src)
+    out = CliRunner().invoke(app, ["camera", "convert", str(src), str(tmp_path / "p.dat"),
+                                   "--halcon-model", "polynomial", "--pixel-height-um", "4.8"])
+    assert out.exit_code == 0, out.output
+    assert "APPROXIMATE" in out.output and "polynomial" in out.output
+    assert isinstance(read_halcon(tmp_path / "p.dat"), PolynomialCamera)

@@ -18,8 +18,11 @@ def camera_convert_cmd(
     dst: str = typer.Argument(..., help="Output file; the format follows the suffix (.json, "
                               ".yml, .ros.yaml, .dat) unless --to is given."),
     to: str = typer.Option(None, help="Output format: json, opencv, ros or halcon."),
-    pixel_height_um: float = typer.Option(None, help="Pixel height Sy when converting to the "
-                                          "division model (default 3.45)."),
+    pixel_height_um: float = typer.Option(None, help="Pixel height Sy when converting to a "
+                                          "HALCON model (default 3.45)."),
+    halcon_model: str = typer.Option(None, help="HALCON model of a .dat output: division or "
+                                     "polynomial (default: polynomial for a polynomial camera, "
+                                     "else division)."),
 ):
     """Convert a camera file between formats and models (says when it is approximate)."""
     from ..errors import InputError
@@ -35,7 +38,8 @@ def camera_convert_cmd(
     fmt = to or detect_format(dst, for_writing=True)
     if fmt not in FORMATS:
         raise InputError(f"--to must be one of {', '.join(FORMATS)}, got {fmt!r}")
-    conv = convert_camera(cam, fmt, None if pixel_height_um is None else pixel_height_um * 1e-6)
+    conv = convert_camera(cam, fmt, None if pixel_height_um is None else pixel_height_um * 1e-6,
+                          halcon_model)
     write_camera(conv.camera, dst, fmt)
     if conv.exact:
         typer.echo(f"wrote {dst} ({fmt}, {conv.camera.model} model): exact")

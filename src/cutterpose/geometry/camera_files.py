@@ -56,7 +56,8 @@ from .jsonfile import read_json
 
 __all__ = ["read_halcon", "write_halcon", "read_ros", "write_ros", "detect_format", "sniff_format",
            "write_camera", "load_camera", "save_camera",
-           "FORMATS", "convert_camera", "Conversion", "to_division", "to_opencv"]
+           "FORMATS", "convert_camera", "Conversion", "to_division", "to_opencv",
+           "to_polynomial"]
 
 FORMATS = ("json", "opencv", "ros", "halcon")
 
@@ -434,6 +435,44 @@ def to_division(cam: Camera, pixel_height_m: float | None = None) -> Conversion:
     return _fit(cam, build, x0)
 
 
+def to_polynomial(cam: Camera, pixel_height_m: float | None = None) -> Conversion:
+    """The HALCON polynomial model closest to ``cam`` over its image (exact for a skew-free
+    pinhole and for a polynomial camera).
+
+    ``Sy`` is ``pixel_height_m`` (default: the camera's own, else 3.45 um); f, K1, K2, K3,
+    P1, P2, Sx, Cx, Cy are fitted. From the OpenCV model the start is the first-order inverse
+    of its series (``K1 f^2 ~ -k1``, ``P1 f ~ -p1``, ``P2 f ~ -p2``): OpenCV's polynomial runs
+    from ideal to distorted, HALCON's from distorted to ideal.
+    """
+    if isinstance(cam, PolynomialCamera):
+        return Conversion(_rescale_polynomial(cam, pixel_height_m), True)
+    sy = float(pixel_height_m or getattr(cam, "pixel_size_m", (0, DEFAULT_PIXEL_HEIGHT_M))[1])
+    K = cam.K
+    if abs(K[0, 1]) > 1e-9 * K[0, 0]:
+        raise InputError("the polynomial model has no skew; this camera has K[0, 1] != 0")
+    f0, sx0 = K[1, 1] * sy, sy * K[1, 1] / K[0, 0]
+    if isinstance(cam, PinholeCamera):
+        return Conversion(PolynomialCamera(f0, 0.0, 0.0, 0.0, 0.0, 0.0, (sx0, sy),
+                                           (K[0, 2], K[1, 2]), cam.image_size_px,
+                                           name=cam.name), True)
+
+    def build(x):
+        f = f0 * x[0]
+        return PolynomialCamera(f, x[1] / f**2, x[2] / f**4, x[3] / f**6, x[4] / f, x[5] / f,
+                                (sx0 * x[6], sy), (x[7], x[8]), cam.image_size_px,
+                                name=cam.name)
+
+    c = np.zeros(5)
+    if isinstance(cam, OpenCVCamera):
+        d = np.zeros(5)
+        d[:min(5, cam.dist_coeffs.size)] = cam.dist_coeffs[:5]
+        c = np.array([-d[0], 3 * d[0] ** 2 - d[1], 0.0, -d[2], -d[3]])
+    elif isinstance(cam, DivisionCamera):
+        c[0] = cam.kappa_per_m2 * cam.focal_length_m**2
+    x0 = np.array([1.0, *c, 1.0, K[0, 2], K[1, 2]])
+    return _fit(cam, build, x0)
+
+
 def _rescale_polynomial(cam: PolynomialCamera, pixel_height_m: float | None):
     """The same polynomial camera expressed with pixel height ``pixel_height_m`` (exact: only
     f/Sx and f/Sy are observable; f, Sx and the coefficients scale with Sy)."""
@@ -447,19 +486,25 @@ def _rescale_polynomial(cam: PolynomialCamera, pixel_height_m: float | None):
 
 
 def convert_camera(cam: Camera, target_format: str,
-                   pixel_height_m: float | None = None) -> Conversion:
+                   pixel_height_m: float | None = None,
+                   halcon_model: str | None = None) -> Conversion:
     """Convert ``cam`` to a model that ``target_format`` can hold.
 
     ``json`` holds every model (exact); ``halcon`` holds the division and polynomial models
-    (anything else becomes a division camera); ``opencv`` and
+    (``halcon_model`` chooses; by default a polynomial camera stays one and anything else
+    becomes a division camera); ``opencv`` and
     ``ros`` need a pinhole or OpenCV camera. Division <-> radial polynomial is fitted (not
     exact) and the returned :class:`Conversion` gives the worst pixel error over the image.
     """
     if target_format == "json":
         return Conversion(cam, True)
     if target_format == "halcon":
-        if isinstance(cam, PolynomialCamera):
-            return Conversion(_rescale_polynomial(cam, pixel_height_m), True)
+        if halcon_model not in (None, "division", "polynomial"):
+            raise InputError(f"HALCON model must be division or polynomial, got "
+                             f"{halcon_model!r}")
+        if halcon_model == "polynomial" or (halcon_model is None
+                                            and isinstance(cam, PolynomialCamera)):
+            return to_polynomial(cam, pixel_height_m)
         return to_division(cam, pixel_height_m)
     if target_format in ("opencv", "ros"):
         if isinstance(cam, (PinholeCamera, OpenCVCamera)):
