@@ -99,16 +99,8 @@ class ChessboardTarget(Target):
             g = to_gray_u8(gray)
         except ImageError as e:
             return TargetDetection.missing(str(e))
-        pattern = (self.cols, self.rows)
-        flags = cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_EXHAUSTIVE | cv2.CALIB_CB_ACCURACY
-        found, corners = cv2.findChessboardCornersSB(g, pattern, flags=flags)
-        if not found:
-            found, corners = cv2.findChessboardCorners(
-                g, pattern, flags=cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE)
-            if found:
-                crit = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 50, 1e-3)
-                corners = cv2.cornerSubPix(g, corners, (5, 5), (-1, -1), crit)
-        if not found or corners is None or len(corners) != self.n_points:
+        corners = _find_chessboard(g, (self.cols, self.rows))
+        if corners is None:
             return TargetDetection.missing(f"{self.cols}x{self.rows} chessboard not found")
         pts = corners.reshape(-1, 2).astype(float)
         obj = self.points_target_mm
@@ -154,6 +146,47 @@ class ChessboardTarget(Target):
 
     def spec(self) -> str:
         return f"{self.kind}:{self.cols}x{self.rows}:{self.square_mm:g}"
+
+
+def _find_chessboard(gray: np.ndarray, pattern, max_side: int = 1600):
+    """Inner corners (N, 1, 2) in OpenCV's order, or None.
+
+    ``findChessboardCornersSB`` (with ``CALIB_CB_ACCURACY``; ``CALIB_CB_NORMALIZE_IMAGE``
+    only as a fallback, its histogram equalisation moves corners by ~0.03 px) on a copy of at
+    most ``max_side`` pixels; on larger images the corners are then refined at full
+    resolution by ``cv2.cornerSubPix`` in a window of a quarter square. The classic
+    ``findChessboardCorners`` is the last resort.
+    """
+    import cv2
+
+    h, w = gray.shape
+    scale = min(1.0, max_side / max(h, w))
+    small = gray if scale == 1.0 else cv2.resize(gray, (round(w * scale), round(h * scale)),
+                                                 interpolation=cv2.INTER_AREA)
+    found, corners = False, None
+    acc = cv2.CALIB_CB_EXHAUSTIVE | cv2.CALIB_CB_ACCURACY
+    for flags in (acc, acc | cv2.CALIB_CB_NORMALIZE_IMAGE):
+        found, corners = cv2.findChessboardCornersSB(small, pattern, flags=flags)
+        if found:
+            break
+    if not found:
+        found, corners = cv2.findChessboardCorners(
+            small, pattern, flags=cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE)
+        if not found:
+            return None
+        scale_refine = True
+    else:
+        scale_refine = scale < 1.0
+    if corners is None or len(corners) != pattern[0] * pattern[1]:
+        return None
+    corners = ((corners.astype(np.float64) + 0.5) / scale - 0.5).astype(np.float32)
+    if scale_refine:
+        c = corners.reshape(pattern[1], pattern[0], 2)
+        step = np.median(np.linalg.norm(np.diff(c, axis=1), axis=-1))
+        win = int(np.clip(0.25 * step, 2, 25))
+        crit = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 50, 1e-3)
+        corners = cv2.cornerSubPix(gray, corners.reshape(-1, 1, 2), (win, win), (-1, -1), crit)
+    return corners
 
 
 def aruco_dictionary(name: str):
@@ -210,28 +243,49 @@ class CharucoTarget(Target):
         s = self.square_mm
         return (-s, (self.cols + 1) * s, -s, (self.rows + 1) * s)
 
-    def _texture(self, px_per_mm: float):
+    _LEVELS = (8, 12, 16, 24, 32, 48, 64, 96, 128, 192, 256)  # texels per square
+
+    def _texture(self, pps: int):
+        """The board's image with ``pps`` texels per square, box-filtered from 256 per square
+        (a mipmap level: each texel is the mean of what it covers)."""
+        import cv2
+
         cache = self.__dict__.setdefault("_tex_cache", {})
-        key = round(px_per_mm, 3)
-        if key not in cache:
-            w = max(int(round(self.cols * self.square_mm * px_per_mm)), 8)
-            h = max(int(round(self.rows * self.square_mm * px_per_mm)), 8)
-            cache[key] = self.board().generateImage((w, h), marginSize=0, borderBits=1)
-        return cache[key]
+        if pps not in cache:
+            top = self._LEVELS[-1]
+            if top not in cache:
+                cache[top] = self.board().generateImage(
+                    (self.cols * top, self.rows * top), marginSize=0,
+                    borderBits=1).astype(np.float32) / 255.0
+            cache[pps] = cache[top] if pps == top else cv2.resize(
+                cache[top], (self.cols * pps, self.rows * pps), interpolation=cv2.INTER_AREA)
+        return cache[pps]
 
     def darkness(self, x_mm, y_mm, blur_mm):
+        """Ink of the board's own image (OpenCV's ``generateImage``), sampled bilinearly from
+        the mipmap level whose texels are just below the pixel's footprint (anti-aliased)."""
         import cv2
 
         x, y = np.asarray(x_mm, float), np.asarray(y_mm, float)
-        # one texel per half footprint (at most 20 px/mm); bilinear sampling of the board image
-        foot = float(np.nanmedian(np.broadcast_to(blur_mm, x.shape))) if x.size else 1.0
-        ppmm = float(np.clip(2.0 / max(foot, 1e-3), 1.0, 20.0))
-        tex = self._texture(ppmm).astype(np.float32) / 255.0
-        sx, sy = tex.shape[1] / (self.cols * self.square_mm), tex.shape[0] / (
-            self.rows * self.square_mm)
-        ink = 1.0 - cv2.remap(tex, (x * sx - 0.5).astype(np.float32),
-                              (y * sy - 0.5).astype(np.float32), cv2.INTER_LINEAR,
-                              borderMode=cv2.BORDER_CONSTANT, borderValue=1.0)
+        foot = np.broadcast_to(np.asarray(blur_mm, float), x.shape)
+        levels = np.array(self._LEVELS)
+        need = self.square_mm / np.maximum(foot, 1e-6)  # texels per square for 1 per footprint
+        level = np.minimum(np.searchsorted(levels, need), len(levels) - 1)
+        ink = np.zeros(x.shape)
+        for li in np.unique(level):
+            m = level == li
+            pps = int(levels[li])
+            sc = pps / self.square_mm
+            tex = self._texture(pps)
+            u, w = x[m] * sc - 0.5, y[m] * sc - 0.5
+            n = len(u)
+            rows = -(-n // 4096)  # cv2.remap wants maps below 32767 per side
+            mu = np.zeros(rows * 4096, np.float32)
+            mv = np.zeros(rows * 4096, np.float32)
+            mu[:n], mv[:n] = u, w
+            v = cv2.remap(tex, mu.reshape(rows, 4096), mv.reshape(rows, 4096),
+                          cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=1.0)
+            ink[m] = 1.0 - v.ravel()[:n]
         s = self.square_mm
         d_board = np.maximum.reduce([-x, x - self.cols * s, -y, y - self.rows * s])
         return ink * _ramp(d_board, blur_mm)

@@ -49,11 +49,13 @@ def to_gray_u8(image) -> np.ndarray:
 
 
 def _blob_detector(image_shape, extent_spacings: float, d_over_s: float,
-                   size_px: float | None = None):
+                   size_px: float | None = None, relaxed: bool = False):
     """Dark-blob detector; with ``size_px`` (a typical circle diameter) tuned to that size.
 
     ``extent_spacings`` is the grid's largest extent in spacings (largest circles: the grid
-    spans the image); ``d_over_s`` the circle diameter over the spacing.
+    spans the image); ``d_over_s`` the circle diameter over the spacing. ``relaxed`` (with
+    ``size_px``): finer thresholds and looser shape filters, for blurred circles that touch
+    their neighbours at some thresholds and circles cut by the image border.
     """
     import cv2
 
@@ -81,6 +83,12 @@ def _blob_detector(image_shape, extent_spacings: float, d_over_s: float,
     p.minInertiaRatio = 0.15
     p.filterByConvexity = True
     p.minConvexity = 0.85
+    if relaxed and size_px is not None:
+        p.minThreshold, p.maxThreshold, p.thresholdStep = 20, 235, 10
+        a = np.pi / 4 * size_px**2
+        p.minArea, p.maxArea = float(max(a / 6, 6.0)), float(a * 6)
+        p.minDistBetweenBlobs = float(0.5 * size_px)
+        p.minCircularity, p.minInertiaRatio, p.minConvexity = 0.5, 0.05, 0.7
     return cv2.SimpleBlobDetector_create(p)
 
 
@@ -136,10 +144,11 @@ def find_circle_grid(gray: np.ndarray, cols: int, rows: int, d_over_s: float, *,
             img = _flatten_light(small)
         detectors = []
         kp = _blob_detector(img.shape, extent, d_over_s).detect(img)
-        if len(kp) >= n:
+        if len(kp) >= max(n // 2, 4):  # a few circles may be merged or cut at this stage
             # the circles dominate the blobs: their median size tunes the second detector
             size = float(np.median(sorted(k.size for k in kp)[-n:]))
             detectors.append(_blob_detector(img.shape, extent, d_over_s, size))
+            detectors.append(_blob_detector(img.shape, extent, d_over_s, size, relaxed=True))
         detectors.append(cv2.SimpleBlobDetector_create())  # OpenCV's defaults
         for det in detectors:
             for flags in (flags0, flags0 | cv2.CALIB_CB_CLUSTERING):
