@@ -308,8 +308,8 @@ def _keep_in_view(plate):
     if circles is not None:
         return circles.reshape(-1, 3), float(getattr(plate, "diameter_mm", 1.0)), 6.0
     marker = getattr(plate, "marker_mm", None)
-    if marker is not None:  # ArUco markers need ~4 px per bit
-        return plate.outline_mm(8), float(marker), 28.0
+    if marker is not None:  # ArUco markers need ~3 px per cell (6x6 bits with the border)
+        return plate.outline_mm(8), float(marker), 20.0
     return plate.outline_mm(8), float(getattr(plate, "square_mm", 1.0)), 8.0
 
 
