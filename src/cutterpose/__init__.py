@@ -33,6 +33,11 @@ import os as _os
 # numpy is first imported through cutterpose; set the variable yourself to override.
 for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
     _os.environ.setdefault(_var, "1")
+# OpenCV's decoders refuse an image whose header promises more pixels than this (read once, at
+# "import cv2"): the pixel budget of the formats cutterpose.image.header does not read (64 Mpx,
+# header.MAX_PIXELS; OpenCV's default is 1 Gpx, 1-8 GB decoded)
+if not _os.environ.get("OPENCV_IO_MAX_IMAGE_PIXELS"):
+    _os.environ["OPENCV_IO_MAX_IMAGE_PIXELS"] = str(1 << 26)
 
 from .geometry.camera import Camera, DivisionCamera, OpenCVCamera, PinholeCamera, default_camera
 from .geometry.camera_files import load_camera, save_camera

@@ -231,6 +231,7 @@ def load_frame(source, camera=None, raw_size: tuple[int, int] | None = None,
             return read_raw(path, pixel_format=pixel_format)
         from .image import load_image
 
-        return load_image(path)
+        # the camera's size is checked from the file's header, before a pixel is decoded
+        return load_image(path, tuple(camera.image_size_px) if camera is not None else None)
     raise ImageError(f"expected an image path, an array or a raw buffer, got "
                      f"{type(source).__name__}")

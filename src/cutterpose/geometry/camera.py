@@ -497,11 +497,14 @@ def check_image_size(v):
         if isinstance(w, bool) or isinstance(h, bool) or int(w) != w or int(h) != h:
             raise ValueError
         w, h = int(w), int(h)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         raise CameraFileError(
             f"field 'image_size_px' must be two integers (width, height), got {v!r}") from None
     if w <= 0 or h <= 0:
         raise CameraFileError(f"field 'image_size_px' must be positive, got {v!r}")
+    if w > 1 << 20 or h > 1 << 20:  # OpenCV's largest image side
+        raise CameraFileError(f"field 'image_size_px' must be at most {1 << 20} px a side, "
+                              f"got {v!r}")
     return (w, h)
 
 

@@ -59,7 +59,7 @@ from .corners import (
 )
 from .edges import edge_wear, intersect_consecutive, line_from, refine_lines, robust_edge_lines
 from .params import FeatureParams, Features, Segment, signed_area, where_px
-from .preprocessing import as_grey_u8, binarize, check_image, reduce_image
+from .preprocessing import as_grey_u8, binarize, check_frame_size, check_image, reduce_image
 from .region import find_roi, match_outline
 
 __all__ = ["detect_features"]
@@ -96,6 +96,7 @@ def detect_features(image: np.ndarray, camera: Camera, holder: Holder,
         t = now
 
     image = as_grey_u8(image)
+    check_frame_size(image, camera)
     small = reduce_image(image, params.roi_downscale)
     check_image(image, camera, small)
     lap("check")
@@ -229,6 +230,7 @@ def detect_features_field(image: np.ndarray, camera: Camera, holder: Holder,
     """
     timings, lap = _timer()
     image = as_grey_u8(image)
+    check_frame_size(image, camera)
     small = reduce_image(image, params.roi_downscale)
     check_image(image, camera, small)
     lap("check")

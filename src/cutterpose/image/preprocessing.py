@@ -15,33 +15,59 @@ import numpy as np
 
 from ..errors import ImageError
 from ..geometry.camera import Camera
+from .header import MAX_PIXELS, MIN_SIDE_PX, check_header
 from .params import FeatureParams
 
 
-def load_image(path) -> np.ndarray:
+def load_image(path, expected_px: tuple[int, int] | None = None) -> np.ndarray:
     """Read an image file as 8-bit grey.
 
-    Colour images are converted to grey, 16-bit images scaled to 8 bits.
+    Colour images are converted to grey, 16-bit images scaled to 8 bits. The size is read
+    from the file's header and checked before a pixel is decoded
+    (:func:`cutterpose.image.header.check_header`): ``expected_px`` (the camera's
+    ``(width, height)``) when given, else the pixel budget; a side under 32 px is refused.
 
     Raises
     ------
     ImageError
-        Missing file, a directory, not an image, or a truncated/corrupt image.
+        Missing file, a directory, not an image, a truncated/corrupt image, or a size no stage
+        can use (from the header, before decoding).
     """
     path = Path(path)
     if not path.exists():
         raise ImageError(f"{path}: image file not found")
     if not path.is_file():
         raise ImageError(f"{path}: not a file")
-    data = np.fromfile(str(path), dtype=np.uint8)
+    try:
+        data = np.fromfile(str(path), dtype=np.uint8)
+    except OSError as e:
+        raise ImageError(f"{path}: cannot be read ({e.strerror or e})") from None
     if data.size == 0:
         raise ImageError(f"{path}: empty file, not an image")
-    img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
+    check_header(data.tobytes(), str(path), expected_px)
+    try:
+        img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
+    except cv2.error as e:
+        raise ImageError(f"{path}: {decode_refusal(e)}") from None
     if img is None:
         raise ImageError(f"{path}: not a readable image (unknown format, truncated or corrupt)")
     if _png_truncated(data):
         raise ImageError(f"{path}: truncated PNG (no IEND chunk)")
-    return as_grey_u8(img, str(path))
+    img = as_grey_u8(img, str(path))
+    if min(img.shape) < MIN_SIDE_PX:
+        raise ImageError(f"{path}: image is {img.shape[1]} x {img.shape[0]} px; the "
+                         f"measurement needs at least {MIN_SIDE_PX} px on each side")
+    return img
+
+
+def decode_refusal(e: Exception) -> str:
+    """One line for an OpenCV decoder's exception (its header limits: module
+    :mod:`cutterpose.image.header`)."""
+    text = " ".join(str(e).split())
+    if "MAX_IMAGE" in text:
+        return (f"the header promises more than the {MAX_PIXELS / 1e6:.0f} Mpx read "
+                "(OPENCV_IO_MAX_IMAGE_PIXELS; not decoded)")
+    return f"not decoded ({text[-160:] or 'decoder error'})"
 
 
 def _png_truncated(data: np.ndarray) -> bool:
@@ -89,11 +115,7 @@ def check_image(image: np.ndarray, camera: Camera, small: np.ndarray | None = No
     ImageError
         With the measured statistic in the message.
     """
-    h, w = image.shape[:2]
-    if (w, h) != tuple(camera.image_size_px):
-        cw, ch = camera.image_size_px
-        raise ImageError(f"image is {w} x {h} px but the camera model is for {cw} x {ch} px "
-                         "(wrong camera file, or a resized/cropped image)")
+    check_frame_size(image, camera)
     s = np.ascontiguousarray(small if small is not None else image[::8, ::8])
     # from the grey-level histogram (one pass; the same values as np.percentile)
     counts = cv2.calcHist([s], [0], None, [256], [0, 256]).ravel()
@@ -108,6 +130,25 @@ def check_image(image: np.ndarray, camera: Camera, small: np.ndarray | None = No
     if p99 - p01 < 10:
         raise ImageError(f"image is nearly uniform (grey levels {p01:.0f}..{p99:.0f}): "
                          "nothing to measure")
+
+
+def check_frame_size(image: np.ndarray, camera: Camera) -> None:
+    """Refuse an image that is not the camera's size, or too small for any stage (a side under
+    :data:`~cutterpose.image.header.MIN_SIDE_PX`), before any filter runs on it.
+
+    Raises
+    ------
+    ImageError
+        The sizes found and wanted, in one line.
+    """
+    h, w = np.shape(image)[:2]
+    if (w, h) != tuple(camera.image_size_px):
+        cw, ch = camera.image_size_px
+        raise ImageError(f"image is {w} x {h} px but the camera model is for {cw} x {ch} px "
+                         "(wrong camera file, or a resized/cropped image)")
+    if min(w, h) < MIN_SIDE_PX:
+        raise ImageError(f"image is {w} x {h} px; the measurement needs at least "
+                         f"{MIN_SIDE_PX} px on each side")
 
 
 def percentiles_from_histogram(counts: np.ndarray, q) -> list[float]:
@@ -132,6 +173,9 @@ def reduce_image(image: np.ndarray, factor: int) -> np.ndarray:
     if factor <= 1:
         return image
     h, w = image.shape
+    if w // factor < 1 or h // factor < 1:
+        raise ImageError(f"image is {w} x {h} px, too small to reduce {factor}x (at least "
+                         f"{MIN_SIDE_PX} px on each side)")
     return cv2.resize(image, (w // factor, h // factor), interpolation=cv2.INTER_AREA)
 
 

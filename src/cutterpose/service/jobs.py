@@ -15,10 +15,8 @@ Convention:
 
 from __future__ import annotations
 
-import io
 import os
 import time
-import warnings
 
 import numpy as np
 
@@ -85,6 +83,8 @@ def decode_image(data: bytes, fmt: str, size_px: tuple[int, int] | None,
     import cv2
 
     from ..image import as_grey_u8
+    from ..image.header import check_header
+    from ..image.preprocessing import decode_refusal
 
     ew, eh = expected_px
     if fmt == "raw":
@@ -96,20 +96,12 @@ def decode_image(data: bytes, fmt: str, size_px: tuple[int, int] | None,
             raise ImageError(f"image is {w} x {h} px but the camera model is for {ew} x {eh} "
                              "px (wrong camera file, or a resized/cropped image)")
         return np.frombuffer(data, np.uint8).reshape(h, w).copy()
-    from PIL import Image, UnidentifiedImageError
-
+    # the size from the header, before a pixel is decoded (a small file may claim a huge image)
+    check_header(data, None, (ew, eh))
     try:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            with Image.open(io.BytesIO(data)) as im:  # reads the header only
-                w, h = im.size
-    except (UnidentifiedImageError, OSError, SyntaxError, ValueError,
-            Image.DecompressionBombError) as e:
-        raise ImageError(f"not a readable {fmt.upper()} image ({e})") from None
-    if (w, h) != (ew, eh):
-        raise ImageError(f"image is {w} x {h} px but the camera model is for {ew} x {eh} px "
-                         "(wrong camera file, or a resized/cropped image)")
-    img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+        img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+    except cv2.error as e:
+        raise ImageError(decode_refusal(e)) from None
     if img is None:
         raise ImageError(f"not a readable {fmt.upper()} image (corrupt or truncated)")
     img = as_grey_u8(img, "image")
