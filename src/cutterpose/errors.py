@@ -67,3 +67,13 @@ class EdgeLookFileError(ModelFileError):
 
 class HandEyeFileError(ModelFileError):
     """A hand-eye file (``handeye.json``) is missing or malformed."""
+
+
+class StoreError(CutterposeError):
+    """The service's record (the data directory's database and images) cannot be opened or
+    written: locked, corrupt, full or read-only; the message says which."""
+
+    def __init__(self, message: str, transient: bool = False):
+        super().__init__(message)
+        #: the next try may work once the cause is gone (space freed, lock released)
+        self.transient = transient

@@ -39,9 +39,7 @@ def serve_cmd(
     import dataclasses
 
     try:
-        import uvicorn
-
-        from ..service.app import create_app
+        from ..service.server import run
     except ImportError as e:
         fail(f"the service needs its extra: pip install 'cutterpose[service]' ({e})")
     from ..service.config import load_cell
@@ -55,9 +53,10 @@ def serve_cmd(
     log(f"cell {cell.name!r}: camera {cell.camera_source} "
         f"{cell.camera.image_size_px[0]} x {cell.camera.image_size_px[1]} px, "
         f"{cell.service.workers} workers, data in {cell.service.data_dir}")
-    uvicorn.run(create_app(cell), host=host, port=port, log_level=log_level,
-                ssl_certfile=ssl_certfile, ssl_keyfile=ssl_keyfile, ssl_ca_certs=ssl_ca_certs,
-                ssl_cert_reqs=ssl_cert_reqs, timeout_graceful_shutdown=10)
+    # the cell's timeouts and connection limits (docs/service.md); a locked or corrupt
+    # record stops the start here with its reason
+    run(cell, host=host, port=port, log_level=log_level, ssl_certfile=ssl_certfile,
+        ssl_keyfile=ssl_keyfile, ssl_ca_certs=ssl_ca_certs, ssl_cert_reqs=ssl_cert_reqs)
 
 
 @records_app.command("export")

@@ -15,6 +15,7 @@ from contextlib import asynccontextmanager
 from fastapi import FastAPI
 
 from .config import Cell
+from .deps import AuthGuard
 from .http_errors import ApiError, install_error_handlers
 from .jobs import init_worker
 from .metrics import Metrics, MetricsMiddleware
@@ -57,6 +58,7 @@ def create_app(cell: Cell, pool: WorkerPool | None = None) -> FastAPI:
                     "error is a JSON object `{error, message}`. See docs/service.md.",
         lifespan=lifespan)
     app.state.cell = cell
+    app.state.auth_guard = AuthGuard(settings.auth_max_failures, settings.auth_window_s)
     app.add_middleware(MetricsMiddleware,
                        metrics_getter=lambda: getattr(app.state, "metrics", None))
     install_error_handlers(app)

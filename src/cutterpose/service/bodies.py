@@ -9,17 +9,24 @@ Convention:
 
 from __future__ import annotations
 
+import asyncio
+import logging
+import time
+
 from fastapi import Request
+from starlette.requests import ClientDisconnect
 
 from ..errors import ImageError
 from .config import Cell, ServiceSettings
-from .http_errors import ApiError
+from .http_errors import ApiError, ClientGoneError
 from .jobs import check_encoded
 from .models import MeasureJSON, parse_flange_pose
 from .workers import QueueFullError
 
 __all__ = ["OPENAPI_BODY", "content_type", "read_body", "queue_full", "shutting_down",
            "check_holder", "image_params", "check_body"]
+
+LOGGER = logging.getLogger("cutterpose.service")
 
 OPENAPI_BODY = {
     "requestBody": {
@@ -46,7 +53,9 @@ def content_type(request: Request) -> str:
 
 async def read_body(request: Request, settings: ServiceSettings) -> bytes:
     """The whole body, refused with 413 as soon as it passes ``max_body_bytes`` (so a 200 MB
-    body is never held) and with 400 when empty."""
+    body is never held), with 400 when empty, and with 408 (connection closed) when no byte
+    comes for ``body_idle_timeout_s`` or the whole body is not in after ``upload_timeout_s``.
+    A client that goes away mid-body raises :class:`.http_errors.ClientGoneError`."""
     limit = settings.max_body_bytes
     too_large = ApiError(413, "too_large", f"body larger than {limit} bytes (service."
                          "max_body_mb of the cell file)")
@@ -57,13 +66,40 @@ async def read_body(request: Request, settings: ServiceSettings) -> bytes:
         if int(cl) > limit:
             raise too_large
     buf = bytearray()
-    async for chunk in request.stream():  # checked while it streams in
-        buf += chunk
+    chunks = request.stream().__aiter__()
+    end = time.monotonic() + settings.upload_timeout_s
+    while True:
+        left = end - time.monotonic()
+        wait = min(settings.body_idle_timeout_s, left)
+        try:
+            chunk = await asyncio.wait_for(chunks.__anext__(), max(wait, 0.0))
+        except StopAsyncIteration:
+            break
+        except TimeoutError:
+            why = (f"no body byte for {settings.body_idle_timeout_s:g} s "
+                   "(service.body_idle_timeout_s)" if wait < left else
+                   f"the body was not in after {settings.upload_timeout_s:g} s "
+                   "(service.upload_timeout_s)")
+            LOGGER.info("%s: %s %s: %s after %d bytes; answered 408", _peer(request),
+                        request.method, request.url.path, why, len(buf))
+            raise ApiError(408, "request_timeout", f"{why}; received {len(buf)} bytes",
+                           headers={"Connection": "close"}) from None
+        except ClientDisconnect:
+            of = f" of {cl}" if cl else ""
+            raise ClientGoneError(f"{_peer(request)}: {request.method} {request.url.path}: the "
+                             f"client went away during the upload ({len(buf)}{of} bytes "
+                             "received)") from None
+        buf += chunk  # checked while it streams in
         if len(buf) > limit:
             raise too_large
     if not buf:
         raise ApiError(400, "empty_body", "empty body: send the image")
     return bytes(buf)
+
+
+def _peer(request: Request) -> str:
+    c = request.client
+    return f"{c.host}:{c.port}" if c else "client"
 
 
 def queue_full(e: QueueFullError) -> ApiError:

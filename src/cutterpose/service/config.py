@@ -37,6 +37,14 @@ bundled Table 1 cell (``cutterpose/data/cell_table1.toml``)::
     max_body_mb = 64                  # larger bodies get 413
     image_cap_mb = 2048               # stored images, oldest evicted first; 0 = keep none
     token_file = "token.txt"          # bearer token; CUTTERPOSE_TOKEN wins
+    header_timeout_s = 10             # a request head not complete by then: connection closed
+    body_idle_timeout_s = 10          # no body byte for this long: 408, connection closed
+    upload_timeout_s = 120            # the whole body not in by then: 408, connection closed
+    keep_alive_s = 5                  # an idle keep-alive connection is closed after this
+    max_header_kb = 16                # a larger request head: 400, connection closed
+    max_connections = 1000            # connections beyond this are closed at once
+    auth_max_failures = 20            # wrong tokens from one address within auth_window_s,
+    auth_window_s = 60                #   then 429 for that address until the window clears
 
 Relative paths are relative to the cell file's folder, except ``data_dir``, which is relative to
 the current directory (default ``./cutterpose-data``), so that the bundled cell file never
@@ -139,6 +147,14 @@ class _Service(_Strict):
     token_file: str | None = None
     max_tracks: int = Field(4, ge=0, le=1024)
     track_idle_s: Positive = 60.0
+    header_timeout_s: Positive = 10.0
+    body_idle_timeout_s: Positive = 10.0
+    upload_timeout_s: Positive = 120.0
+    keep_alive_s: float = Field(5.0, ge=1, le=3600, allow_inf_nan=False)
+    max_header_kb: float = Field(16.0, ge=1, le=1024, allow_inf_nan=False)
+    max_connections: int = Field(1000, ge=1, le=100_000)
+    auth_max_failures: int = Field(20, ge=1, le=1_000_000)
+    auth_window_s: Positive = 60.0
 
 
 class _CellFile(_Strict):
@@ -168,6 +184,15 @@ class ServiceSettings:
     image_cap_bytes: int
     max_tracks: int = 4            #: tracking sessions open at once (:mod:`.tracks`)
     track_idle_s: float = 60.0     #: a session unused this long is closed
+    #: hostile-client limits (:mod:`.server`, :func:`.bodies.read_body`, :mod:`.deps`)
+    header_timeout_s: float = 10.0
+    body_idle_timeout_s: float = 10.0
+    upload_timeout_s: float = 120.0
+    keep_alive_s: float = 5.0
+    max_header_bytes: int = 16 * 1024
+    max_connections: int = 1000
+    auth_max_failures: int = 20
+    auth_window_s: float = 60.0
 
 
 @dataclass(frozen=True)
@@ -335,7 +360,12 @@ def load_cell(path: str | Path | None = None, env: dict | None = None,
         queue_size=s.queue_size, deadline_s=float(s.deadline_s),
         max_body_bytes=int(s.max_body_mb * 2 ** 20),
         image_cap_bytes=int(s.image_cap_mb * 2 ** 20),
-        max_tracks=s.max_tracks, track_idle_s=float(s.track_idle_s))
+        max_tracks=s.max_tracks, track_idle_s=float(s.track_idle_s),
+        header_timeout_s=float(s.header_timeout_s),
+        body_idle_timeout_s=float(s.body_idle_timeout_s),
+        upload_timeout_s=float(s.upload_timeout_s), keep_alive_s=float(s.keep_alive_s),
+        max_header_bytes=int(s.max_header_kb * 1024), max_connections=s.max_connections,
+        auth_max_failures=s.auth_max_failures, auth_window_s=float(s.auth_window_s))
     token = ""
     if need_token:
         try:

@@ -9,32 +9,40 @@ Convention:
 
 from __future__ import annotations
 
+import logging
 import math
 
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
-from fastapi.responses import JSONResponse
+from fastapi.responses import JSONResponse, Response
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from .models import ErrorBody
 
-__all__ = ["ApiError", "error_response", "responses", "install_error_handlers", "finite",
-           "refuse"]
+LOGGER = logging.getLogger("cutterpose.service")
+
+__all__ = ["ApiError", "ClientGoneError", "error_response", "responses",
+           "install_error_handlers", "finite", "refuse"]
 
 ERRORS = {400: "Malformed request", 401: "Missing or wrong bearer token",
-          404: "Not found",
+          404: "Not found", 408: "The body did not arrive in time (connection closed)",
           409: "Request id reused for a different request",
           413: "Body larger than the limit", 415: "Unsupported content type",
           422: "Invalid parameters or unusable image",
-          429: "Too many tracking sessions open (retry after Retry-After seconds)",
+          429: "Too many tracking sessions open, or too many wrong tokens from this address "
+               "(retry after Retry-After seconds)",
           500: "Service fault",
-          503: "Busy (retry after Retry-After seconds) or not ready",
+          503: "Busy (retry after Retry-After seconds), not ready, or the data directory "
+               "cannot be written now",
           504: "Deadline exceeded"}
 
 
 def responses(*codes) -> dict:
-    """The OpenAPI ``responses`` entry of a route's error codes."""
-    return {c: {"model": ErrorBody, "description": ERRORS[c]} for c in codes}
+    """The OpenAPI ``responses`` entry of a route's error codes (a route that needs the token
+    may also answer 429 to an address that sent too many wrong ones)."""
+    if 401 in codes and 429 not in codes:
+        codes = (*codes, 429)
+    return {c: {"model": ErrorBody, "description": ERRORS[c]} for c in sorted(codes)}
 
 
 class ApiError(Exception):
@@ -45,6 +53,11 @@ class ApiError(Exception):
         super().__init__(message)
         self.status, self.error, self.message = status, error, message
         self.headers, self.detail = headers, detail
+
+
+class ClientGoneError(Exception):
+    """The client closed the connection before its request was in: logged as one INFO line
+    (never an error with a traceback), nothing answered."""
 
 
 def error_response(status: int, error: str, message: str, headers=None, detail=None):
@@ -74,6 +87,12 @@ def refuse(app: FastAPI, reason: str) -> None:
 
 def install_error_handlers(app: FastAPI) -> None:
     """Every exception becomes a typed JSON answer (a fault: 500, its traceback in the log)."""
+
+    @app.exception_handler(ClientGoneError)
+    async def _client_gone(request: Request, e: ClientGoneError):
+        refuse(request.app, "client_gone")
+        LOGGER.info("%s", e)
+        return Response(status_code=400)   # nobody reads it: the connection is gone
 
     @app.exception_handler(ApiError)
     async def _api_error(request: Request, e: ApiError):

@@ -113,10 +113,13 @@ class ServerProcess:
     cell : the cell file.
     token : put in ``CUTTERPOSE_TOKEN`` (None: the cell's token file).
     log_path : where stdout / stderr go.
+    log_level : the server's (``info`` also logs the closed connections and refusals).
     """
 
-    def __init__(self, cell, token: str | None = None, log_path=None, workers: int | None = None):
+    def __init__(self, cell, token: str | None = None, log_path=None, workers: int | None = None,
+                 log_level: str = "warning"):
         self.cell, self.token, self.workers = Path(cell), token, workers
+        self.log_level = log_level
         self.log_path = Path(log_path) if log_path else Path(cell).with_suffix(".log")
         self.port = free_port()
         self.url = f"http://127.0.0.1:{self.port}"
@@ -132,7 +135,7 @@ class ServerProcess:
         if self.token is not None:
             env["CUTTERPOSE_TOKEN"] = self.token
         cmd = [sys.executable, "-m", "cutterpose.cli", "serve", "--config", str(self.cell),
-               "--port", str(self.port), "--log-level", "warning"]
+               "--port", str(self.port), "--log-level", self.log_level]
         if self.workers:
             cmd += ["--workers", str(self.workers)]
         self._log = open(self.log_path, "ab")

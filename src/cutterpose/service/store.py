@@ -17,6 +17,7 @@ Convention:
 
 from __future__ import annotations
 
+import errno
 import json
 import os
 import sqlite3
@@ -24,7 +25,9 @@ import threading
 from collections import deque
 from pathlib import Path
 
-__all__ = ["Store", "DB_NAME"]
+from ..errors import StoreError
+
+__all__ = ["Store", "DB_NAME", "StoreError"]
 
 DB_NAME = "measurements.sqlite3"
 
@@ -56,18 +59,17 @@ class Store:
     """SQLite record and image folder under ``data_dir`` (module doc). Thread-safe: one
     connection behind a lock (the service calls it from a thread pool)."""
 
-    def __init__(self, data_dir: Path, image_cap_bytes: int):
+    def __init__(self, data_dir: Path, image_cap_bytes: int, open_timeout_s: float = 5.0):
         self.data_dir = Path(data_dir)
         self.images_dir = self.data_dir / "images"
-        self.images_dir.mkdir(parents=True, exist_ok=True)
         self.db_path = self.data_dir / DB_NAME
         self.image_cap_bytes = int(image_cap_bytes)
         self._lock = threading.Lock()
-        self._db = sqlite3.connect(self.db_path, check_same_thread=False,
-                                   isolation_level=None, timeout=30)
-        self._db.execute("PRAGMA journal_mode=WAL")
-        self._db.execute("PRAGMA synchronous=FULL")
-        self._db.executescript(_SCHEMA)
+        try:
+            self.images_dir.mkdir(parents=True, exist_ok=True)
+        except OSError as e:
+            raise StoreError(f"{self.images_dir}: cannot be created ({e.strerror})") from None
+        self._db = self._open(open_timeout_s)
         # images oldest first (names carry no order: the file times do)
         files = [(p.stat().st_mtime_ns, p.name, p.stat().st_size)
                  for p in self.images_dir.iterdir() if p.is_file() and not p.name.startswith(".")]
@@ -76,6 +78,38 @@ class Store:
         files.sort()
         self._images = deque((name, size) for _, name, size in files)
         self.images_bytes = sum(s for _, s in self._images)
+
+    def _open(self, timeout_s: float) -> sqlite3.Connection:
+        """The database, checked: an existing file must be an intact cutterpose record (never
+        silently replaced by a new empty one), and writable now (not locked by another
+        process)."""
+        existed = self.db_path.is_file() and self.db_path.stat().st_size > 0
+        db = sqlite3.connect(self.db_path, check_same_thread=False, isolation_level=None,
+                             timeout=timeout_s)
+        try:
+            if existed:                       # checked before anything is written
+                names = {r[0] for r in db.execute("SELECT name FROM sqlite_master")}
+                if "measurements" not in names:
+                    raise StoreError(f"{self.db_path}: an SQLite file without a measurements "
+                                     "table: not a cutterpose record (move it away or choose "
+                                     "another data_dir); nothing was changed")
+                check = db.execute("PRAGMA quick_check(1)").fetchone()[0]
+                if check != "ok":
+                    raise StoreError(f"{self.db_path}: the record is corrupt ({check}); "
+                                     "restore it from a backup or move it away")
+            db.execute("PRAGMA journal_mode=WAL")
+            db.execute("PRAGMA synchronous=FULL")
+            db.executescript(_SCHEMA)
+            db.execute("BEGIN IMMEDIATE")     # can we write? (locked / read-only)
+            db.execute("ROLLBACK")
+            db.execute("PRAGMA busy_timeout = 30000")
+        except sqlite3.Error as e:
+            db.close()
+            raise StoreError(f"{self.db_path}: {_why(e, timeout_s)}") from None
+        except StoreError:
+            db.close()
+            raise
+        return db
 
     def close(self) -> None:
         with self._lock:
@@ -109,32 +143,56 @@ class Store:
                     return first
             if keep:
                 name = f"{row['id']}{ext}"
-                tmp = self.images_dir / f".tmp-{name}"
-                tmp.write_bytes(image)
-                os.replace(tmp, self.images_dir / name)
+                self._write_image(name, image)
             cols = dict(row, image_file=name, record=text)
             try:
                 self._db.execute(
                     f"INSERT INTO measurements ({', '.join(cols)}) "
                     f"VALUES ({', '.join('?' * len(cols))})", tuple(cols.values()))
             except sqlite3.IntegrityError:
-                if name:
-                    (self.images_dir / name).unlink(missing_ok=True)
+                self._unlink(name)
                 first = self._by_request_id(row.get("request_id"))
                 if first is None:
                     raise
                 return first
+            except sqlite3.Error as e:
+                self._unlink(name)                   # nothing half written
+                raise StoreError(f"{self.db_path}: the row was not written "
+                                 f"({_why(e, 30)})", transient=True) from None
             if name:
                 self._images.append((name, len(image)))
                 self.images_bytes += len(image)
                 self._evict()
         return record
 
+    def write_file(self, path: Path, data: bytes) -> None:
+        """Write ``data`` to ``path`` (the one place the store writes an image file; tests
+        replace it to simulate a full or read-only disk)."""
+        path.write_bytes(data)
+
+    def _write_image(self, name: str, image: bytes) -> None:
+        """The image under its name, whole or not at all (temporary file, then renamed)."""
+        tmp = self.images_dir / f".tmp-{name}"
+        try:
+            self.write_file(tmp, image)
+            os.replace(tmp, self.images_dir / name)
+        except OSError as e:
+            self._unlink(tmp.name)
+            raise StoreError(f"{self.images_dir}: the image was not written "
+                             f"({_os_why(e)})", transient=True) from None
+
+    def _unlink(self, name: str | None) -> None:
+        if name:
+            try:
+                (self.images_dir / name).unlink(missing_ok=True)
+            except OSError:
+                pass                                 # read-only: left for the next start
+
     def _evict(self) -> None:
         gone = []
         while self.images_bytes > self.image_cap_bytes and self._images:
             name, size = self._images.popleft()
-            (self.images_dir / name).unlink(missing_ok=True)
+            self._unlink(name)
             self.images_bytes -= size
             gone.append(name)
         if gone:
@@ -194,3 +252,26 @@ class Store:
     def integrity_check(self) -> str:
         with self._lock:
             return self._db.execute("PRAGMA integrity_check").fetchone()[0]
+
+
+def _os_why(e: OSError) -> str:
+    names = {errno.ENOSPC: "the disk is full", errno.EDQUOT: "the disk quota is used up",
+             errno.EROFS: "the file system is read-only",
+             errno.EACCES: "no permission to write", errno.EPERM: "no permission to write"}
+    return f"{names.get(e.errno, 'cannot be written')}: {e.strerror or e}"
+
+
+def _why(e: sqlite3.Error, timeout_s: float) -> str:
+    text = str(e)
+    if "locked" in text or "busy" in text:
+        return (f"the database is locked by another process for more than {timeout_s:g} s "
+                f"(another cutterpose serve on this data_dir?) ({text})")
+    if "not a database" in text or "malformed" in text:
+        return f"not an SQLite database, or a corrupt one ({text}); nothing was changed"
+    if "full" in text:
+        return f"the disk is full ({text})"
+    if "readonly" in text or "read-only" in text:
+        return f"the database cannot be written: read-only ({text})"
+    if "unable to open" in text:
+        return f"the database cannot be opened ({text})"
+    return text

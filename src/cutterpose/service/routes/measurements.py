@@ -43,7 +43,7 @@ from ..deps import AUTH, CellDep, MeasurementId, MetricsDep, PoolDep, StoreDep
 from ..http_errors import ApiError, finite, responses
 from ..jobs import FORMATS, MEDIA_TYPES, measure_job, overlay_job
 from ..models import MeasureJSON, MeasurementList, MeasurementRecord, MeasureQuery
-from ..store import Store
+from ..store import Store, StoreError
 from ..workers import (
     DeadlineExceededError,
     JobError,
@@ -126,7 +126,7 @@ async def _input(request: Request, q: MeasureQuery, cell: Cell, store: Store,
 
 
 @router.post("", response_model=MeasurementRecord,
-             responses=responses(400, 401, 409, 413, 415, 422, 500, 503, 504),
+             responses=responses(400, 401, 408, 409, 413, 415, 422, 500, 503, 504),
              openapi_extra=OPENAPI_BODY)
 async def post_measurement(request: Request, q: Annotated[MeasureQuery, Query()],
                            cell: CellDep, store: StoreDep, pool: PoolDep, metrics: MetricsDep):
@@ -170,6 +170,13 @@ async def _store(cell: Cell, store: Store, record: dict, row_cols: dict, data: b
     keep = data if cell.service.image_cap_bytes > 0 else None
     try:
         return await asyncio.to_thread(store.insert, record, row_cols, keep, MEDIA_TYPES[fmt][1])
+    except StoreError as e:
+        if not e.transient:
+            raise ApiError(500, "store_failed", f"the measurement could not be recorded ({e}); "
+                           "nothing was answered") from None
+        raise ApiError(503, "storage_unavailable", f"the measurement was not recorded: {e}; "
+                       "nothing was stored, retry once the data directory can be written",
+                       headers={"Retry-After": "30"}) from None
     except (sqlite3.Error, OSError) as e:
         raise ApiError(500, "store_failed", f"the measurement could not be recorded "
                        f"({type(e).__name__}: {e}); nothing was answered") from None

@@ -71,7 +71,7 @@ async def delete_track(track_id: TrackId, tracks: TracksDep, cell: CellDep):
 
 
 @router.post("/{track_id}/frames", response_model=TrackFrameOut,
-             responses=responses(400, 401, 404, 413, 415, 422, 500),
+             responses=responses(400, 401, 404, 408, 413, 415, 422, 500),
              openapi_extra=_FRAME_BODY)
 async def post_frame(request: Request, track_id: TrackId,
                      q: Annotated[TrackFrameQuery, Query()], tracks: TracksDep, cell: CellDep):
