@@ -74,6 +74,9 @@ def parse_raw_size(spec: str) -> tuple[int, int]:
 
 def _check_size(n_bytes: int, width: int, height: int, where: str,
                 fmt: str = "mono8") -> None:
+    if not all(isinstance(v, int | np.integer) and 1 <= v <= 1 << 20 for v in (width, height)):
+        raise ImageError(f"{where}: a raw frame's width and height must be whole numbers from "
+                         f"1 to {1 << 20}, got {width!r} x {height!r}")
     n = int(width) * int(height)
     if PIXEL_FORMATS[fmt][0] == 3 and n % 2:
         raise ImageError(f"{where}: a packed 12-bit frame needs an even number of pixels, got "
@@ -158,7 +161,8 @@ def raw_sidecar_format(path) -> tuple[int, int, str] | None:
     try:
         doc = json.loads(side.read_text())
         w, h = int(doc["width"]), int(doc["height"])
-    except (json.JSONDecodeError, UnicodeDecodeError, KeyError, TypeError, ValueError) as e:
+    except (json.JSONDecodeError, UnicodeDecodeError, KeyError, TypeError, ValueError,
+            OverflowError, RecursionError) as e:
         raise ImageError(f"{side}: a raw frame's sidecar needs integer 'width' and 'height' "
                          f"({type(e).__name__}: {e})") from None
     fmt = _format(doc.get("pixel_format", "Mono8"), f"{side}: pixel_format")

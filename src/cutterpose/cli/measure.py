@@ -154,15 +154,26 @@ def measure_cmd(
     if as_json:
         typer.echo(_json.dumps(m.to_dict()))
     else:
-        if m.pose is not None:
-            typer.echo("\n".join(m.pose_lines()))
-            typer.echo("time: " + ", ".join(f"{k} {v:.0f} ms" for k, v in m.timings_ms.items()))
-        if m.robot is not None:
-            typer.echo("\n".join(_robot_lines(m.robot)))
+        typer.echo("\n".join(_plain_lines(m)))
     if not m.ok:
         fail(f"pose refused: {m.quality.reason}", code=3)
     if m.robot is not None and not m.robot.grasp.ok:
         fail(f"retake: {m.robot.grasp.reason} -- {m.robot.grasp.hint}", code=4)
+
+
+def _plain_lines(m) -> list[str]:
+    """The plain answer: the verdict on the first line (``ACCEPTED`` or ``REFUSED: reason``),
+    then the pose only when it was accepted; a refused pose is no measurement, so it is not
+    printed as one (``--json`` keeps it, marked ``"ok": false``)."""
+    timing = "time: " + ", ".join(f"{k} {v:.0f} ms" for k, v in m.timings_ms.items())
+    if not m.ok:
+        return [f"REFUSED: {m.quality.reason}",
+                "no pose given (--json shows the refused estimate, marked ok: false)", timing]
+    robot = _robot_lines(m.robot) if m.robot is not None else []
+    if m.robot is not None and not m.robot.grasp.ok:
+        g = m.robot.grasp
+        return [f"REFUSED: retake: {g.reason}", *robot, timing]
+    return ["ACCEPTED", *m.pose_lines(), timing, *robot]
 
 
 def _robot_lines(r) -> list[str]:
