@@ -688,37 +688,20 @@ def robust_edge_lines(img: np.ndarray, roi_origin, camera: Camera, pred_ideal: n
                          gate_px=params.max_line_shift_px + 0.5 * params.max_outward_shift_px)
     Ls, ss, ws = tukey_lines([f[1] for f in fit], L0, s0)
     if params.edge_innermost > 0 and fit:
-        # second pass, on the profiles whose first point is not an inlier: the rise nearest
-        # the fitted line (the innermost rise may have been too weak there, or a blemish
-        # inside it), so that each line follows one and the same rise of a broken edge
-        lab = np.full(n, -1)
-        lab[ks] = np.arange(len(ks))
-        redo = lab[which] >= 0
-        row_k = {k: rows[w_all == k] for k in ks}
-        for e, (k, _, _) in enumerate(fit):
-            redo[row_k[k][ws[e] > 0]] = False
-        r_idx = np.nonzero(redo)[0]
-        if len(r_idx):
-            e_r = lab[which[r_idx]]
-            Lp, nb = Ls[e_r], -n_in[which[r_idx]]
-            o_exp = -(Lp[:, 0] * base[r_idx, 0] + Lp[:, 1] * base[r_idx, 1] + Lp[:, 2]) \
-                / (Lp[:, 0] * nb[:, 0] + Lp[:, 1] * nb[:, 1])
-            # only rises the first fit would call inliers (Tukey's cut at its scale)
-            o2, r2 = _nearest_rise_centroids(np.diff(prof[r_idx], axis=1), offsets[0] + 0.125,
-                                             0.25, o_exp, 0.5 * params.edge_innermost,
-                                             gate_px=TUKEY_C * ss[e_r])
-            rows2 = r_idx[r2]
-            pts2 = base[rows2] - o2[:, None] * n_in[which[rows2]]
-            w2 = which[rows2]
-            grow = [e for e, f in enumerate(fit) if np.any(w2 == f[0])]
-            if grow:
-                merged = [np.vstack([fit[e][1][ws[e] > 0], pts2[w2 == fit[e][0]]])
-                          for e in grow]
-                L2, s2, ws2 = tukey_lines(merged, Ls[grow], ss[grow])
-                ws = list(ws)
-                for i, e in enumerate(grow):
-                    fit[e] = (fit[e][0], merged[i], fit[e][2])
-                    Ls[e], ss[e], ws[e] = L2[i], s2[i], ws2[i]
+        Ls, ss, ws = _refit_nearest_rise(fit, Ls, ss, ws, prof, base, which, rows, w_all,
+                                         n_in, offsets, params)
+    return _judge_lines(fit, Ls, ss, ws, ts_k, n_in, camera, params)
+
+def _judge_lines(fit, Ls, ss, ws, ts_k, n_in, camera: Camera, params: FeatureParams):
+    """The lines of :func:`robust_edge_lines` judged: support (inliers' share of the profiled
+    length), seen (enough support, within the shift limits of the prediction, not much noisier
+    than the others), and the inlier points distorted to observed pixels. Returns its
+    ``(lines, seen, edge_points_px, support, scale_px)``."""
+    n = len(n_in)
+    lines = np.full((n, 3), np.nan)
+    seen = np.zeros(n, bool)
+    support = np.zeros(n)
+    scale = np.full(n, np.nan)
     inliers = {}
     for (k, pts, ends), L, s_k, w in zip(fit, Ls, ss, ws):
         inl = w > 0
@@ -750,3 +733,44 @@ def robust_edge_lines(img: np.ndarray, roi_origin, camera: Camera, pred_ideal: n
         seen &= ~noisy
         lines[noisy] = np.nan
     return lines, seen, edges, support, scale
+
+
+def _refit_nearest_rise(fit, Ls, ss, ws, prof, base, which, rows, w_all, n_in, offsets,
+                        params: FeatureParams):
+    """The second pass of :func:`robust_edge_lines` (``edge_innermost > 0``), on the profiles
+    whose first point is not an inlier: the rise nearest the fitted line (the innermost rise
+    may have been too weak there, or a blemish inside it), so that each line follows one and
+    the same rise of a broken edge. Updates ``fit`` in place; returns the lines, scales and
+    weights ``(Ls, ss, ws)``."""
+    n = len(n_in)
+    ks = [f[0] for f in fit]
+    lab = np.full(n, -1)
+    lab[ks] = np.arange(len(ks))
+    redo = lab[which] >= 0
+    row_k = {k: rows[w_all == k] for k in ks}
+    for e, (k, _, _) in enumerate(fit):
+        redo[row_k[k][ws[e] > 0]] = False
+    r_idx = np.nonzero(redo)[0]
+    if len(r_idx):
+        e_r = lab[which[r_idx]]
+        Lp, nb = Ls[e_r], -n_in[which[r_idx]]
+        o_exp = -(Lp[:, 0] * base[r_idx, 0] + Lp[:, 1] * base[r_idx, 1] + Lp[:, 2]) \
+            / (Lp[:, 0] * nb[:, 0] + Lp[:, 1] * nb[:, 1])
+        # only rises the first fit would call inliers (Tukey's cut at its scale)
+        o2, r2 = _nearest_rise_centroids(np.diff(prof[r_idx], axis=1), offsets[0] + 0.125,
+                                         0.25, o_exp, 0.5 * params.edge_innermost,
+                                         gate_px=TUKEY_C * ss[e_r])
+        rows2 = r_idx[r2]
+        pts2 = base[rows2] - o2[:, None] * n_in[which[rows2]]
+        w2 = which[rows2]
+        grow = [e for e, f in enumerate(fit) if np.any(w2 == f[0])]
+        if grow:
+            merged = [np.vstack([fit[e][1][ws[e] > 0], pts2[w2 == fit[e][0]]])
+                      for e in grow]
+            L2, s2, ws2 = tukey_lines(merged, Ls[grow], ss[grow])
+            ws = list(ws)
+            for i, e in enumerate(grow):
+                fit[e] = (fit[e][0], merged[i], fit[e][2])
+                Ls[e], ss[e], ws[e] = L2[i], s2[i], ws2[i]
+    return Ls, ss, ws
+

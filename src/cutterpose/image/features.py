@@ -86,15 +86,7 @@ def detect_features(image: np.ndarray, camera: Camera, holder: Holder,
         return detect_features_field(image, camera, holder, params, corners)
     if params.chain != "paper":
         raise InputError(f"unknown feature chain {params.chain!r}: 'field' or 'paper'")
-    timings: dict[str, float] = {}
-    t = time.perf_counter()
-
-    def lap(name):
-        nonlocal t
-        now = time.perf_counter()
-        timings[name] = (now - t) * 1e3
-        t = now
-
+    timings, lap = _timer()
     image = as_grey_u8(image)
     check_frame_size(image, camera)
     small = reduce_image(image, params.roi_downscale)
@@ -107,28 +99,13 @@ def detect_features(image: np.ndarray, camera: Camera, holder: Holder,
     small_sub = small[v0 // s: -(-v1 // s), u0 // s: -(-u1 // s)]
     lap("roi")
 
-    n_expected = holder.n_corners
-    levels = threshold_levels(small_sub, params)
-    errors = []
     contours = []  # (level, contour_px, contour_ideal) for the model-guided fallback
-    for level in levels:
-        try:
-            binary = binarize(sub, small_sub, level, params)
-            res = contour_and_segments(binary, roi, image.shape, camera, level, n_expected,
-                                        params, contours)
-            segs = res[2]
-            lines0, inward, spans = initial_lines(res[1], segs)
-            check_corner_angles(lines0, params, segs)
-            check_families(lines0, params, segs, camera)
-            break
-        except FeatureError as e:
-            errors.append((level, str(e)))
-    else:
-        res = None
+    res, level, errors = _segment_at_levels(image.shape, sub, small_sub, roi, camera,
+                                            holder.n_corners, params, contours)
     lap("threshold+contour+segments")
     origin = np.array([u0, v0], float)
     if res is not None:
-        contour_px, contour_ideal, segs, prims = res
+        contour_px, contour_ideal, segs, prims, lines0, inward, spans = res
         lines = lines0
         edges: list = []
         if params.refine:
@@ -153,9 +130,41 @@ def detect_features(image: np.ndarray, camera: Camera, holder: Holder,
     else:
         msg = (errors[0][1] if len(errors) == 1
                else " | ".join(f"threshold {lv}: {m}" for lv, m in errors))
+    return _model_fallback_features(msg, contours, image, sub, roi, score, camera, holder,
+                                    params, timings, lap)
+
+
+def _segment_at_levels(shape, sub, small_sub, roi, camera: Camera, n_expected: int,
+                       params: FeatureParams, contours: list):
+    """The paper's threshold chain at each threshold level in turn (binarise, inside contour,
+    characteristic segments, initial lines, their angle and family checks) until one passes.
+    Returns ``(result or None, level, errors)``: ``result = (contour_px, contour_ideal,
+    segments, primitives, lines0, inward, spans)``; ``errors`` the ``(level, message)`` of
+    each level that failed; ``contours`` collects the contours for the model fallback."""
+    errors = []
+    for level in threshold_levels(small_sub, params):
+        try:
+            binary = binarize(sub, small_sub, level, params)
+            res = contour_and_segments(binary, roi, shape, camera, level, n_expected,
+                                       params, contours)
+            segs = res[2]
+            lines0, inward, spans = initial_lines(res[1], segs)
+            check_corner_angles(lines0, params, segs)
+            check_families(lines0, params, segs, camera)
+            return (*res, lines0, inward, spans), level, errors
+        except FeatureError as e:
+            errors.append((level, str(e)))
+    return None, None, errors
+
+
+def _model_fallback_features(msg: str, contours: list, image, sub, roi, score, camera: Camera,
+                             holder: Holder, params: FeatureParams, timings: dict, lap):
+    """When the paper's segmentation failed (``msg``): the lines from the holder model fitted
+    to the contour (:func:`model_features`), refined on the edges, checked for edge support
+    and for corners near the model's; :class:`FeatureError` with both reasons otherwise."""
     if params.model_fallback == "none" or not contours or not params.refine:
         raise FeatureError(msg)
-    # the paper's segmentation failed: lines from the model fitted to the contour
+    origin = np.array([roi[0], roi[1]], float)
     try:
         level, contour_px, contour_ideal, segs, lines0, inward, spans, _ = \
             model_features(contours, sub, roi, camera, holder, params)
@@ -234,32 +243,9 @@ def detect_features_field(image: np.ndarray, camera: Camera, holder: Holder,
     small = reduce_image(image, params.roi_downscale)
     check_image(image, camera, small)
     lap("check")
-    H0, score = match_outline(small, camera, holder, params)
-    lap("roi")
+    H, score, roi, sub, origin = _pocket_outline(image, small, camera, holder, params, lap)
     model = np.asarray(holder.corners_mm, float)
-    h, w = image.shape
-    outline = camera.distort_px(apply_homography(H0, model))
-    m = max(params.search_gates_px) + 0.1 * float(np.ptp(outline, axis=0).max()) + 16
-    u0, v0 = np.maximum(np.floor(outline.min(axis=0) - m), 0).astype(int)
-    u1, v1 = np.minimum(np.ceil(outline.max(axis=0) + m) + 1, [w, h]).astype(int)
-    if u1 - u0 < 16 or v1 - v0 < 16:
-        raise FeatureError("the pocket outline matched outside the image: holder not in view")
-    roi = (int(u0), int(v0), int(u1), int(v1))
-    sub = image[v0:v1, u0:u1].astype(np.float32)
-    origin = np.array([u0, v0], float)
-    H, support_all = search_outline(sub, origin, camera, holder, H0, params)
-    lap("outline search")
-    if support_all < params.min_outline_support:
-        raise FeatureError(f"the pocket outline fits the image's edges along only "
-                           f"{100 * support_all:.0f} % of its length (< "
-                           f"{100 * params.min_outline_support:.0f} %): holder hidden, partly "
-                           "out of view, or not in view")
     pred = apply_homography(H, model)
-    pred_px = camera.distort_px(pred)
-    near = ~camera.in_image(pred_px, params.border_margin_px)
-    if near.any():
-        raise FeatureError(f"the holder is partly out of view: its pocket corner near "
-                           f"{where_px(pred_px[near][0])} px is outside the image")
     n = len(model)
     # lines, spans and normals of the outline fit, for the wear indicator and the overlay
     sign = np.sign(signed_area(pred))
@@ -281,21 +267,8 @@ def detect_features_field(image: np.ndarray, camera: Camera, holder: Holder,
                         lines_visible=none.copy(), H_ideal_holder=H, image=image)
     lines, seen, edges, support, _ = robust_edge_lines(sub, origin, camera, pred, params)
     lap("lines")
-    X = intersect_consecutive(np.where(np.isfinite(lines), lines, 0.0))
-    corners_ideal = np.roll(X, 1, axis=0)  # corner i: edges i - 1 and i
-    visible = seen & np.roll(seen, 1)
-    with np.errstate(invalid="ignore"):
-        visible &= np.linalg.norm(corners_ideal - pred, axis=1) <= params.max_corner_gap_px
-    corners_ideal[~visible] = np.nan
-    corners_px = np.full((n, 2), np.nan)
-    if visible.any():
-        corners_px[visible] = camera.distort_px(corners_ideal[visible])
-    if visible.sum() < 6:
-        k = int(np.argmin(support))
-        mid = camera.distort_px(0.5 * (pred[k] + pred[(k + 1) % n])[None])[0]
-        raise FeatureError(f"only {int(visible.sum())} of {n} corners seen (lines seen: "
-                           f"{int(seen.sum())}; least-supported edge near {where_px(mid)} px, "
-                           f"{100 * support[k]:.0f} % of it): holder hidden or damaged")
+    corners_ideal, corners_px, visible = _corners_of_lines(lines, seen, support, pred, camera,
+                                                           params)
     lap("corners")
     length = np.linalg.norm(nxt - pred, axis=1)
     # edge_wear keeps 2 refine_trim_px more from each end (about a contour segment's span)
@@ -317,3 +290,62 @@ def detect_features_field(image: np.ndarray, camera: Camera, holder: Holder,
                     segmentation="field", edge_darkening=dark, edge_offset_px=off,
                     inward_ideal=inward, visible=visible, order="holder", lines_visible=seen,
                     H_ideal_holder=H, image=image)
+
+def _pocket_outline(image: np.ndarray, small: np.ndarray, camera: Camera, holder: Holder,
+                    params: FeatureParams, lap):
+    """The field chain's pocket outline: the outline templates matched on the reduced image
+    (:func:`match_outline`), a region round it, and the outline's homography searched on the
+    image's edges there (:func:`search_outline`), checked for support and for lying in view.
+    Returns ``(H_ideal_holder, roi_score, roi, sub, origin)`` (``sub``: the region, float32)."""
+    H0, score = match_outline(small, camera, holder, params)
+    lap("roi")
+    model = np.asarray(holder.corners_mm, float)
+    h, w = image.shape
+    outline = camera.distort_px(apply_homography(H0, model))
+    m = max(params.search_gates_px) + 0.1 * float(np.ptp(outline, axis=0).max()) + 16
+    u0, v0 = np.maximum(np.floor(outline.min(axis=0) - m), 0).astype(int)
+    u1, v1 = np.minimum(np.ceil(outline.max(axis=0) + m) + 1, [w, h]).astype(int)
+    if u1 - u0 < 16 or v1 - v0 < 16:
+        raise FeatureError("the pocket outline matched outside the image: holder not in view")
+    roi = (int(u0), int(v0), int(u1), int(v1))
+    sub = image[v0:v1, u0:u1].astype(np.float32)
+    origin = np.array([u0, v0], float)
+    H, support_all = search_outline(sub, origin, camera, holder, H0, params)
+    lap("outline search")
+    if support_all < params.min_outline_support:
+        raise FeatureError(f"the pocket outline fits the image's edges along only "
+                           f"{100 * support_all:.0f} % of its length (< "
+                           f"{100 * params.min_outline_support:.0f} %): holder hidden, partly "
+                           "out of view, or not in view")
+    pred_px = camera.distort_px(apply_homography(H, model))
+    near = ~camera.in_image(pred_px, params.border_margin_px)
+    if near.any():
+        raise FeatureError(f"the holder is partly out of view: its pocket corner near "
+                           f"{where_px(pred_px[near][0])} px is outside the image")
+    return H, score, roi, sub, origin
+
+
+def _corners_of_lines(lines: np.ndarray, seen: np.ndarray, support: np.ndarray,
+                      pred: np.ndarray, camera: Camera, params: FeatureParams):
+    """The corners of the field chain's lines: corner ``i`` where the seen edges ``i - 1`` and
+    ``i`` meet, within ``max_corner_gap_px`` of the outline fit's ``pred``; at least 6 of them
+    (else :class:`FeatureError` naming the least-supported edge). Returns ``(corners_ideal,
+    corners_px, visible)`` (NaN where not visible)."""
+    n = len(pred)
+    X = intersect_consecutive(np.where(np.isfinite(lines), lines, 0.0))
+    corners_ideal = np.roll(X, 1, axis=0)  # corner i: edges i - 1 and i
+    visible = seen & np.roll(seen, 1)
+    with np.errstate(invalid="ignore"):
+        visible &= np.linalg.norm(corners_ideal - pred, axis=1) <= params.max_corner_gap_px
+    corners_ideal[~visible] = np.nan
+    corners_px = np.full((n, 2), np.nan)
+    if visible.any():
+        corners_px[visible] = camera.distort_px(corners_ideal[visible])
+    if visible.sum() < 6:
+        k = int(np.argmin(support))
+        mid = camera.distort_px(0.5 * (pred[k] + pred[(k + 1) % n])[None])[0]
+        raise FeatureError(f"only {int(visible.sum())} of {n} corners seen (lines seen: "
+                           f"{int(seen.sum())}; least-supported edge near {where_px(mid)} px, "
+                           f"{100 * support[k]:.0f} % of it): holder hidden or damaged")
+    return corners_ideal, corners_px, visible
+

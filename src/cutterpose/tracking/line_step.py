@@ -148,25 +148,11 @@ class LineStep:
                 return (f"only {int(seen.sum())} of {n} edges seen (< {tp.lines_needed(n)}, or < 2 "
                         f"per direction; least-supported edge {worst}: "
                         f"{100 * support[worst]:.0f} % of it): jump, occlusion or lost edges")
-            start = pose
-            for _ in range(tp.max_dropped_lines + 1):
-                fit = self._fit_lines_pose(start, lines, seen, new)
-                if isinstance(fit, str):
-                    return fit
-                pose, r, r_start, J, J2 = fit
-                # a line far off the rigid model while the others fit rests on something else
-                # (a lump's outline, the cutter, the wrong rise): leave it out and fit again
-                ks = np.nonzero(seen)[0]
-                misfit = np.maximum(np.abs(r[:len(ks)]), np.abs(r[len(ks):]))
-                worst = int(np.argmax(misfit))
-                bar = max(tp.line_outlier_px, tp.line_outlier_factor * float(np.median(misfit)))
-                if misfit[worst] <= bar or seen.sum() <= tp.lines_needed(n):
-                    break
-                seen = seen.copy()
-                seen[ks[worst]] = False
-                lines = lines.copy()
-                lines[ks[worst]] = np.nan
-                dropped += 1
+            out = self._fit_without_outliers(pose, lines, seen, new)
+            if isinstance(out, str):
+                return out
+            (pose, r, r_start, J, J2), lines, seen, d = out
+            dropped += d
             lap("solve")
             # how far the fit moved the bands' centres (the model's edges, along their
             # normals): profiles sampled off-centre cut a rise at the band's end (a biased
@@ -197,6 +183,33 @@ class LineStep:
                           lines_found=lines_found, edges_found=found)
         res.passes = passes
         return res
+
+    def _fit_without_outliers(self, start: Pose, lines: np.ndarray, seen: np.ndarray,
+                              new: np.ndarray | None):
+        """The pose fitted to the seen lines from ``start`` (:meth:`_fit_lines_pose`); a line
+        far off the rigid model while the others fit rests on something else (a lump's
+        outline, the cutter, the wrong rise): it is left out and the pose fitted again, up to
+        ``max_dropped_lines`` times. Returns ``(fit, lines, seen, dropped)`` or a reason."""
+        tp = self.tp
+        n = len(self._model_mm)
+        dropped = 0
+        for _ in range(tp.max_dropped_lines + 1):
+            fit = self._fit_lines_pose(start, lines, seen, new)
+            if isinstance(fit, str):
+                return fit
+            r = fit[1]
+            ks = np.nonzero(seen)[0]
+            misfit = np.maximum(np.abs(r[:len(ks)]), np.abs(r[len(ks):]))
+            worst = int(np.argmax(misfit))
+            bar = max(tp.line_outlier_px, tp.line_outlier_factor * float(np.median(misfit)))
+            if misfit[worst] <= bar or seen.sum() <= tp.lines_needed(n):
+                break
+            seen = seen.copy()
+            seen[ks[worst]] = False
+            lines = lines.copy()
+            lines[ks[worst]] = np.nan
+            dropped += 1
+        return fit, lines, seen, dropped
 
     def _fit_lines_pose(self, pose: Pose, lines: np.ndarray, seen: np.ndarray,
                         new: np.ndarray | None = None, iterations: int = 8):

@@ -187,18 +187,8 @@ class Tracker(Prediction, LineStep, MovedModel, Anchoring):
         self._n += 1
         timings: dict[str, float] = {}
         reason = "first frame" if k == 0 else "no previous pose"
-        # a deferred fall-back (docs/tracking.md): taken up on its frame, pending before it
-        full, note_full, fresh = None, "", False
-        if self._pending_full is not None and k >= self._pending_full.at:
-            j = self._pending_full.frame
-            why, full = self._take_full(k, timings)
-            if not why:
-                note_full, fresh = f"full measurement of {self._name(j)} applied", True
-            elif self._last is not None and self._last_k > j:
-                # tracked since frame j: the tracking goes on with the offsets it has
-                note_full = f"full measurement of {self._name(j)} not applied ({why})"
-            else:
-                self._last, reason = None, why
+        full, note_full, fresh, why = self._take_due_full(k, timings)
+        reason = why or reason
         pending = self._pending_full
         if pending is not None:
             note_full = (f"full measurement of {self._name(pending.frame)} pending "
@@ -264,6 +254,23 @@ class Tracker(Prediction, LineStep, MovedModel, Anchoring):
         self._filter(res, f"fall-back: {reason}" if k else "first pose")
         res.timings_ms = timings | {"total": (time.perf_counter() - t0) * 1e3}
         return res
+
+    def _take_due_full(self, k: int, timings: dict):
+        """A deferred fall-back (docs/tracking.md) due on frame ``k``, taken up: ``(measurement,
+        note, fresh, reason)``: ``fresh`` when it was applied; ``reason`` (the last pose
+        forgotten) when it could not be and nothing was tracked since its frame."""
+        full, note_full, fresh, reason = None, "", False, ""
+        if self._pending_full is not None and k >= self._pending_full.at:
+            j = self._pending_full.frame
+            why, full = self._take_full(k, timings)
+            if not why:
+                note_full, fresh = f"full measurement of {self._name(j)} applied", True
+            elif self._last is not None and self._last_k > j:
+                # tracked since frame j: the tracking goes on with the offsets it has
+                note_full = f"full measurement of {self._name(j)} not applied ({why})"
+            else:
+                self._last, reason = None, why
+        return full, note_full, fresh, reason
 
     def _no_pose(self, k: int, reason: str, m: Measurement | None, timings: dict,
                  t0: float, forget: bool = True) -> TrackResult:
