@@ -106,9 +106,9 @@ def draw_overlay(image: np.ndarray, measurement, camera: Camera, holder: Holder,
 
 def _lines(m) -> list[str]:
     q = m.quality
-    lines = [f"method {m.method}: " + ("OK" if q.ok else "REFUSED")]
-    if not q.ok:
-        lines += textwrap.wrap(q.reason, 90, initial_indent="  ", subsequent_indent="  ")
+    # the verdict first, as `cutterpose measure` prints it
+    lines = [f"ACCEPTED (method {m.method})"] if q.ok else textwrap.wrap(
+        f"REFUSED: {q.reason} (method {m.method})", 90, subsequent_indent="  ")
     # long summary lines (the band's) wrapped to the overlay's width, not cut at its edge
     for line in m.pose_lines():
         lines += textwrap.wrap(line, 90, subsequent_indent="  ") or [""]
