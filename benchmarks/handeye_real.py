@@ -46,20 +46,24 @@ from cutterpose.robot.pose_files import pair_with_images, read_pose_set
 def detect(paths, target):
     """names, (n, N, 2) points, skipped {name: reason}."""
     names, pts, skipped = [], [], {}
+    n_all = len(target.points_target_mm)
     for p in paths:
-        img = cv2.imread(str(p), cv2.IMREAD_GRAYSCALE)
-        det = target.detect(img)
+        det = target.detect(cv2.imread(str(p), cv2.IMREAD_GRAYSCALE))
         if det:
+            full = np.full((n_all, 2), np.nan)  # target order, NaN where not seen
+            full[det.ids] = det.points_px
             names.append(p.name)
-            pts.append(np.asarray(det.points_px, float))
+            pts.append(full)
         else:
             skipped[p.name] = str(det.reason)
     return names, np.stack(pts), skipped
 
 
 def intrinsics(pts: np.ndarray, points_mm: np.ndarray, size) -> tuple[OpenCVCamera, float]:
-    obj = [points_mm.astype(np.float32)] * len(pts)
-    rms, K, dist, _, _ = cv2.calibrateCamera(obj, [p.astype(np.float32) for p in pts],
+    seen = [np.all(np.isfinite(p), axis=1) for p in pts]
+    obj = [points_mm[s].astype(np.float32) for s in seen]
+    rms, K, dist, _, _ = cv2.calibrateCamera(obj, [p[s].astype(np.float32)
+                                                   for p, s in zip(pts, seen)],
                                              tuple(size), None, None)
     K[0, 1] = 0.0
     return OpenCVCamera(K, dist.ravel(), tuple(size), "rct_10x10 (cv2.calibrateCamera)"), rms
@@ -67,7 +71,8 @@ def intrinsics(pts: np.ndarray, points_mm: np.ndarray, size) -> tuple[OpenCVCame
 
 def _predict_rms(cam, points_mm, A: Pose, X: Pose, Y: Pose, obs: np.ndarray) -> float:
     T = X.inverse() @ A.inverse() @ Y
-    return float(np.sqrt(np.mean(np.sum((cam.project(T.apply(points_mm)) - obs) ** 2, axis=1))))
+    return float(np.sqrt(np.nanmean(np.sum((cam.project(T.apply(points_mm)) - obs) ** 2,
+                                           axis=1))))
 
 
 def leave_one_out(A, pts, cam, target: TargetModel, rep):

@@ -106,6 +106,7 @@ __all__ = ["HandEye", "HandEyeResult", "StationResidual", "calibrate_handeye",
            "bundle_adjust_handeye", "TargetModel", "plate_spread", "MIN_PAIR_ROTATION_DEG"]
 
 MIN_AXIS_SPREAD_DEG = 3.0
+MIN_POINTS_PER_STATION = 6
 DUPLICATE_ROTATION_DEG = 1.0
 
 
@@ -300,14 +301,18 @@ def _robust_cost(r: np.ndarray, f: float = 3.0) -> float:
     return float(np.sum(2.0 * (np.sqrt(1.0 + z) - 1.0)))
 
 
-def _plate_poses(camera: Camera, target: TargetModel, A: list[Pose], obs: np.ndarray):
+def _plate_poses(camera: Camera, target: TargetModel, A: list[Pose], obs: np.ndarray,
+                 ambiguity_deg):
     """Step 1: each station's point order (a symmetric target), ``T_cam_plate`` and the marks'
     centre bias. Returns obs in the target's order, B, bias, order labels and margins."""
     n, P = len(A), target.points_mm
+    allowed = target.allowed(ambiguity_deg)
     perms = [np.arange(target.n_points)] + list(target.symmetries)
     # detection j is target point perm[j]: object points P[perm]
-    cand = [[solve_pnp(camera, P[p], obs[k]) for p in perms] for k in range(n)]
-    choice = resolve_point_orders(A, cand, target.symmetries)
+    cand = [[solve_pnp(camera, P[p], obs[k]) if allowed[k, q] or q == 0 else None
+             for q, p in enumerate(perms)] for k in range(n)]
+    cand = [[c if c is not None else row[0] for c in row] for row in cand]
+    choice = resolve_point_orders(A, cand, target.symmetries, allowed)
     obs = np.stack([obs[k][np.argsort(perms[lab])] for k, lab in enumerate(choice.labels)])
     B, bias = [], np.zeros_like(obs)
     for k in range(n):
@@ -331,27 +336,35 @@ def _starts(A: list[Pose], B: list[Pose], prob: HandEyeProblem):
         if not (np.all(np.isfinite(X.matrix)) and np.all(np.isfinite(Y.matrix))):
             starts[name] = "failed: not finite"
             continue
+        try:
+            prob.set_weights(X, Y)
+            cost = _robust_cost(prob.residuals(X, Y))
+        except np.linalg.LinAlgError:  # a start so far off that the target is not in view
+            starts[name] = "failed: the target projects nowhere near its image"
+            continue
+        if not np.isfinite(cost):
+            starts[name] = "failed: the target projects nowhere near its image"
+            continue
         starts[name] = (X, Y)
-        prob.set_weights(X, Y)
-        scored.append((_robust_cost(prob.residuals(X, Y)), name))
+        scored.append((cost, name))
     if not scored:
         raise DegenerateInputError("no OpenCV hand-eye method gave a start: "
                                    + "; ".join(f"{k} {v}" for k, v in starts.items()))
     return starts, min(scored)[1]
 
 
-def _robust_refine(prob: HandEyeProblem, X: Pose, Y: Pose, N: int):
+def _robust_refine(prob: HandEyeProblem, X: Pose, Y: Pose):
     """Step 3: robust pass, distrust, plain pass (twice: a wrongly distrusted station comes
     back), then re-linearised at the solution."""
     n = len(prob.RA)
     prob.set_weights(X, Y)
     used = np.ones(n, bool)
     X, Y, _ = refine_xy(prob, X, Y, used, "soft_l1")
-    limit_q = chi2.ppf(0.999, 2 * N)
+    limit_q = chi2.ppf(0.999, 2 * prob.seen.sum(axis=1))  # per station: its points
     for _ in range(2):
         prob.set_weights(X, Y)
         c2 = np.sum(prob.residuals(X, Y) ** 2, axis=1)
-        new_used = c2 <= max(limit_q, 5.0 * np.median(c2))
+        new_used = c2 <= np.maximum(limit_q, 5.0 * np.median(c2))
         if new_used.sum() < 3:
             new_used = c2 <= np.sort(c2)[2]
         X, Y, res = refine_xy(prob, X, Y, new_used, "linear")
@@ -368,7 +381,7 @@ def calibrate_handeye(T_base_flange: list[Pose], points_px, camera: Camera,
                       repeatability_mm: float = 0.03, repeatability_deg: float = 0.005,
                       max_position_3sigma_mm: float = 0.3,
                       max_angle_3sigma_deg: float = 0.03,
-                      refinement: str = "marginal") -> HandEyeResult:
+                      refinement: str = "marginal", ambiguity_deg=None) -> HandEyeResult:
     """Eye-in-hand calibration from flange poses and the target's points (module doc).
 
     Parameters
@@ -387,6 +400,9 @@ def calibrate_handeye(T_base_flange: list[Pose], points_px, camera: Camera,
         stations kept, :func:`bundle_adjust_handeye` with the robot's errors as explicit
         unknowns under their prior). Both are the maximum-likelihood estimate under target and
         robot noise and agree to ~1e-5 mm in the simulated cell; ``"bundle"`` is ~5x slower.
+    ambiguity_deg : per station, the rotation by which its detected order may be off (0: its
+        marks fixed it; 180: a plain grid; None: as the target says), from each detection's
+        ``rotation_ambiguity_deg``; default None for every station.
 
     Raises
     ------
@@ -406,18 +422,28 @@ def calibrate_handeye(T_base_flange: list[Pose], points_px, camera: Camera,
     if obs.ndim != 3 or obs.shape[1:] != (target.n_points, 2) or len(obs) != len(A):
         raise InputError(f"points_px must be ({len(A)}, {target.n_points}, 2) for {len(A)} "
                          f"stations, got {obs.shape}")
-    if not np.all(np.isfinite(obs)):
-        raise InputError("points_px holds NaN or inf")
+    if np.any(np.isinf(obs)):
+        raise InputError("points_px holds inf (mark a point not seen with NaN)")
+    n_seen = np.sum(np.all(np.isfinite(obs), axis=2), axis=1)
+    if len(obs) and n_seen.min() < MIN_POINTS_PER_STATION:
+        k = int(np.argmin(n_seen))
+        raise InputError(f"station {k} shows {n_seen[k]} target points; a station needs at "
+                         f"least {MIN_POINTS_PER_STATION}")
     names = list(names) if names is not None else [f"station{k}" for k in range(len(A))]
     ang = check_station_rotations(A)
-    n, N, P = len(A), target.n_points, target.points_mm
-    obs, B, bias, orders = _plate_poses(camera, target, A, obs)
+    n, P = len(A), target.points_mm
+    amb = [None] * len(A) if ambiguity_deg is None else list(ambiguity_deg)
+    if len(amb) != len(A):
+        raise InputError(f"ambiguity_deg: {len(amb)} values for {len(A)} stations")
+    obs, B, bias, orders = _plate_poses(camera, target, A, obs, amb)
+    orders.names = ["as detected"] + [f"turned {a:g} deg" for a in target.angles_deg]
     pnp_r = np.stack([camera.project(b.apply(P)) for b in B]) - (obs - bias)
-    sigma_px = max(float(np.sqrt(np.sum(pnp_r ** 2) / (n * (2 * N - 6)))), 1e-3)
+    dof = float(np.sum(2 * n_seen - 6))
+    sigma_px = max(float(np.sqrt(np.nansum(pnp_r ** 2) / dof)), 1e-3)
     prob = HandEyeProblem(camera, P, A, obs, bias, sigma_px, repeatability_mm,
                           math.radians(repeatability_deg))
     starts, start_method = _starts(A, B, prob)
-    X, Y, res, used, limit_q = _robust_refine(prob, *starts[start_method], N)
+    X, Y, res, used, limit_q = _robust_refine(prob, *starts[start_method])
     J = res.jac
     s2 = max(float(np.sum(res.fun ** 2)) / max(len(res.fun) - 12, 1), 1.0)
     try:
@@ -436,15 +462,15 @@ def calibrate_handeye(T_base_flange: list[Pose], points_px, camera: Camera,
         X, Y, covX_own, covY_own = (ba.T_flange_cam, ba.T_base_plate, ba.cov_flange_cam,
                                     ba.cov_base_plate)
     stations = _station_figures(prob, A, B, X, Y, names, used, limit_q, ang, orders)
-    raw = (prob.project(X, Y) - prob.obs).reshape(n, N, 2)
-    used_rms = float(np.sqrt(np.mean(np.sum(raw[used] ** 2, axis=2))))
+    raw = prob.raw(X, Y)
+    used_rms = float(np.sqrt(np.nanmean(np.sum(raw[used] ** 2, axis=2))))
     result = HandEyeResult(HandEye(X, Y, covX_own), covY_own, stations, starts, start_method,
                            sigma_px, used_rms, True, "", (repeatability_mm, repeatability_deg))
     result.plate_spread = plate_spread(prob, A, B, X, Y, used)
-    if len(target.symmetries):
+    if not np.all(np.isinf(orders.margins)):
         flipped = [s.name for s in stations if s.order != "as detected"]
         result.notes.append(
-            f"the target's point order is symmetric: each station's order chosen from the robot "
+            f"the target's point order is ambiguous: each station's order chosen from the robot "
             f"motion (screw invariants); {len(flipped)} of {n} read in a turned order"
             + (f" ({', '.join(flipped)})" if flipped else ""))
     result.ok, result.verdict = _verdict(result, ang, max_position_3sigma_mm,
@@ -454,10 +480,9 @@ def calibrate_handeye(T_base_flange: list[Pose], points_px, camera: Camera,
 
 def _station_figures(prob, A, B, X, Y, names, used, limit_q, ang, orders) -> list:
     """Step 4: per-station residuals, the plate pose each station alone gives, distrust."""
-    n, N = len(A), len(prob.P)
+    n = len(A)
     prob.set_weights(X, Y)
-    raw = (prob.project(X, Y) - prob.obs).reshape(n, N, 2)
-    rms = np.sqrt(np.mean(np.sum(raw ** 2, axis=2), axis=1))
+    rms = np.sqrt(np.nanmean(np.sum(prob.raw(X, Y) ** 2, axis=2), axis=1))
     c2 = np.sum(prob.residuals(X, Y) ** 2, axis=1)
     m_deg, m_mm = motion_mismatch(A, B)
     stations = []
@@ -465,13 +490,13 @@ def _station_figures(prob, A, B, X, Y, names, used, limit_q, ang, orders) -> lis
         Yk = A[k] @ X @ B[k]
         st = StationResidual(names[k], float(rms[k]), float(np.linalg.norm(Yk.t_mm - Y.t_mm)),
                              float(geodesic_deg(Yk.R, Y.R)), float(c2[k]), bool(used[k]))
-        st.order = "as detected" if orders.labels[k] == 0 else f"symmetry {orders.labels[k]}"
+        st.order = orders.names[orders.labels[k]]
         st.order_margin = float(orders.margins[k])
         st.motion_deg, st.motion_mm = float(m_deg[k]), float(m_mm[k])
         why = []
         if not used[k]:
             why.append(f"outlier (chi-square {c2[k]:.0f}, limit "
-                       f"{max(limit_q, 5.0 * np.median(c2[used])):.0f}; plate off by "
+                       f"{max(limit_q[k], 5.0 * np.median(c2[used])):.0f}; plate off by "
                        f"{st.position_mm:.2f} mm / {st.angle_deg:.3f} deg)")
         others = np.delete(ang[k], k)
         if others.min() < DUPLICATE_ROTATION_DEG:
@@ -504,29 +529,27 @@ def _verdict(r: HandEyeResult, ang: np.ndarray, max_pos: float, max_ang: float):
 
 
 def _detect(target, img: np.ndarray):
-    """``(points_px, None)`` or ``(None, reason)``: a CirclePlate through
-    :func:`detect_plate`, any other target through its ``detect``; only full views are used."""
+    """``(points_px in the target's order, NaN where not seen, rotation ambiguity [deg], '')``
+    or ``(None, 0, reason)``: a CirclePlate through :func:`detect_plate`, any other target
+    through its ``detect``."""
     from .intrinsics import detect_plate
 
     if target is None or isinstance(target, CirclePlate):
         try:
-            return detect_plate(img, target or CirclePlate()).points_px, None
+            return detect_plate(img, target or CirclePlate()).points_px, 0, ""
         except FeatureError as e:
-            return None, str(e)
+            return None, 0, str(e)
     det = target.detect(img)
     if not det:
-        return None, str(getattr(det, "reason", "") or "target not found")
-    pts = np.asarray(det.points_px, float)
-    n_all = len(np.asarray(target.points_target_mm))
-    ids = getattr(det, "ids", None)
-    if ids is not None and len(ids) and len(ids) == len(pts) and len(pts) == n_all:
-        full = np.full((n_all, 2), np.nan)
-        full[np.asarray(ids, int)] = pts
-        pts = full
-    if len(pts) != n_all or not np.all(np.isfinite(pts)):
-        return None, (f"partial view ({len(pts)} of {n_all} points): hand-eye calibration "
-                      "uses views of the whole target")
-    return pts, None
+        return None, 0, str(getattr(det, "reason", "") or "target not found")
+    n_all = TargetModel.of(target).n_points
+    ids = np.asarray(det.ids, int)
+    if len(np.unique(ids)) < MIN_POINTS_PER_STATION:
+        return None, 0, (f"{len(np.unique(ids))} of {n_all} points: a station needs at least "
+                         f"{MIN_POINTS_PER_STATION}")
+    pts = np.full((n_all, 2), np.nan)  # a partial view: the points not seen stay NaN
+    pts[ids] = det.points_px
+    return pts, int(det.rotation_ambiguity_deg), ""
 
 
 def handeye_from_images(paths, T_base_flange: list[Pose], camera: Camera,
@@ -541,18 +564,19 @@ def handeye_from_images(paths, T_base_flange: list[Pose], camera: Camera,
     if len(paths) != len(T_base_flange):
         raise InputError(f"{len(paths)} target images but {len(T_base_flange)} robot poses; "
                          "give one pose per image, in the images' sorted order")
-    pts, poses, names = [], [], []
+    pts, poses, names, amb = [], [], [], []
     for p, a in zip(paths, T_base_flange):
         img = cv2.imread(str(p), cv2.IMREAD_GRAYSCALE) if p.is_file() else None
-        reason = "not a readable image" if img is None else None
+        reason = "not a readable image" if img is None else ""
         if img is not None:
-            found, reason = _detect(plate, img)
+            found, ambiguity, reason = _detect(plate, img)
             if found is not None:
                 pts.append(found)
                 poses.append(a)
                 names.append(p.name)
+                amb.append(ambiguity)
         if progress is not None:
-            progress(p.name, reason)
+            progress(p.name, reason or None)
     n_pts = TargetModel.of(plate).n_points
     return calibrate_handeye(poses, np.array(pts).reshape(len(pts), n_pts, 2), camera,
-                             plate, names=names, **kwargs)
+                             plate, names=names, ambiguity_deg=amb, **kwargs)

@@ -140,7 +140,8 @@ def bundle_adjust_handeye(T_base_flange: list[Pose], points_px, camera: Camera,
 
     def fun(x):
         X, Y, d, RA, tA = unpack(x)
-        r_img = (prob.project(X, Y, RA, tA) - prob.obs).ravel() / sigma_px
+        r_img = ((prob.project(X, Y, RA, tA) - prob.obs)
+                 * prob.seen[..., None]).ravel() / sigma_px
         return np.concatenate([w_img * r_img, (d / prior_sd).ravel()])
 
     def solve(x):

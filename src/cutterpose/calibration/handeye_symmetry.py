@@ -104,8 +104,8 @@ def motion_mismatch(A: list[Pose], B: list[Pose]) -> tuple[np.ndarray, np.ndarra
     return th, d
 
 
-def resolve_point_orders(A: list[Pose], B: list[list[Pose]],
-                         symmetries: list[np.ndarray]) -> OrderChoice:
+def resolve_point_orders(A: list[Pose], B: list[list[Pose]], symmetries: list[np.ndarray],
+                         allowed: np.ndarray | None = None) -> OrderChoice:
     """Choose each station's point order (module doc).
 
     Parameters
@@ -114,17 +114,24 @@ def resolve_point_orders(A: list[Pose], B: list[list[Pose]],
     B : per station, the target pose ``T_cam_plate`` for each candidate order: ``B[i][0]`` as
         detected, ``B[i][k]`` with the points read through ``symmetries[k-1]``.
     symmetries : the target's point permutations (without the identity).
+    allowed : (n, 1 + len(symmetries)) bool, the orders each station may have (its detection's
+        own ambiguity; default all). Stations allowed only their own order (a detection whose
+        marks fixed it) anchor the target frame: then no relabelling to the majority.
 
     Returns
     -------
     OrderChoice with labels in 0..len(symmetries).
     """
     n, m = len(A), len(B[0])
-    if m == 1 or n < 2:
+    allowed = np.ones((n, m), bool) if allowed is None else np.asarray(allowed, bool)
+    fixed = ~allowed[:, 1:].any(axis=1)
+    if m == 1 or n < 2 or fixed.all():
         return OrderChoice(np.zeros(n, int), np.full(n, np.inf))
     cost = _pair_costs(A, B)
+    big = 1e9
+    cost = cost + big * (~allowed)[:, None, :, None] + big * (~allowed)[None, :, None, :]
     best_total, best = np.inf, None
-    for r in range(n):
+    for r in (np.flatnonzero(fixed) if fixed.any() else range(n)):
         lab = np.argmin(cost[r, :, 0, :], axis=1)
         lab[r] = 0
         total = cost[np.arange(n)[:, None], np.arange(n)[None, :], lab[:, None],
@@ -137,10 +144,13 @@ def resolve_point_orders(A: list[Pose], B: list[list[Pose]],
                              axis=3)[..., 0]                     # per[i, j, a]
     per[np.arange(n), np.arange(n)] = 0.0
     per = per.sum(axis=1)                                        # (n, m)
-    alt = per.copy()
+    alt = np.where(allowed, per, np.inf)
     alt[np.arange(n), lab] = np.inf
     margins = alt.min(axis=1) - per[np.arange(n), lab]
-    lab = _majority_gauge(lab, symmetries)
+    if not fixed.any():
+        relabelled = _majority_gauge(lab, symmetries)
+        if allowed[np.arange(n), relabelled].all():
+            lab = relabelled
     return OrderChoice(lab, margins)
 
 
