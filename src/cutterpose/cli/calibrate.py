@@ -56,7 +56,9 @@ def _target_from_options(target: str | None, plate_file: str | None, grid: str |
 TARGET_HELP = ("Calibration target: caltab:7x7:30 (default), circles:COLSxROWS:SPACING_MM, "
                "acircles:COLSxROWS:SPACING_MM (each with :light, :origin-dot), "
                "chessboard:COLSxROWS:SQUARE_MM, charuco:COLSxROWS:SQUARE_MM:MARKER_MM:DICT, or a "
-               "target file (.yaml/.json, HALCON .descr/.cpd); see docs/calibration_targets.md.")
+               "target file (.yaml/.json, HALCON .descr/.cpd); see "
+               "docs/calibration_targets.md.")
+_TARGET, _MODEL, _OUTPUT, _CELL = "Target", "Camera model", "Output", "Robot cell"
 
 
 def _auto_distance(cam, target) -> tuple[float, float]:
@@ -77,22 +79,29 @@ def render_plate_cmd(
     seed: int = typer.Option(0, help="Seed of the poses and the sensor noise."),
     preset: str = typer.Option("easy", help="Sensor/blur preset of the holder renderer "
                                "(easy, dim, blurred, ...)."),
-    target: str = typer.Option(None, "--target", help=TARGET_HELP + " Default: the plate of "
+    target: str = typer.Option(None, "--target", rich_help_panel=_TARGET,
+        help=TARGET_HELP + " Default: the plate of "
                                "--grid/--spacing-mm/--diameter-mm."),
-    grid: str = typer.Option(None, help="Circle grid of the project's plate, rows x cols "
+    grid: str = typer.Option(None, rich_help_panel=_TARGET,
+        help="Circle grid of the project's plate, rows x cols "
                              "(default 7x7)."),
-    spacing_mm: float = typer.Option(None, help="Circle spacing in mm (default 30)."),
-    diameter_mm: float = typer.Option(None, help="Circle diameter in mm (default 15)."),
+    spacing_mm: float = typer.Option(None, rich_help_panel=_TARGET,
+        help="Circle spacing in mm (default 30)."),
+    diameter_mm: float = typer.Option(None, rich_help_panel=_TARGET,
+        help="Circle diameter in mm (default 15)."),
     distance_mm: str = typer.Option(None, help="Range of plate distances in mm, MIN,MAX "
                                     "(default 400,700 for the project's plate; for other "
                                     "targets where it spans 45-85 % of the image width)."),
-    robot_cell: bool = typer.Option(False, "--robot-cell", help="Hand-eye mode: a simulated "
+    robot_cell: bool = typer.Option(False, "--robot-cell", rich_help_panel=_CELL,
+        help="Hand-eye mode: a simulated "
                                     "robot cell (random camera mount, fixed plate) moves the "
                                     "camera through COUNT stations; writes robot_poses.csv "
                                     "(reported flange poses) and cell_truth.json."),
-    repeatability_mm: float = typer.Option(0.03, help="--robot-cell: robot position noise, "
+    repeatability_mm: float = typer.Option(0.03, rich_help_panel=_CELL,
+        help="--robot-cell: robot position noise, "
                                            "mm per axis (1 sigma)."),
-    repeatability_deg: float = typer.Option(0.005, help="--robot-cell: robot rotation noise, "
+    repeatability_deg: float = typer.Option(0.005, rich_help_panel=_CELL,
+        help="--robot-cell: robot rotation noise, "
                                             "deg per axis (1 sigma)."),
     plate_poses: str = typer.Option(None, "--plate-poses", help="Render one image per pose "
                                     "of this pose file (T_cam_plate, any convention of "
@@ -183,31 +192,45 @@ def calibrate_cmd(
     images: list[str] = typer.Argument(..., help="Target images (files or folders)."),
     out: str = typer.Option(..., "--out", help="Camera file to write (.json, .yml, .dat, "
                             ".ros.yaml)."),
-    target: str = typer.Option(None, "--target", help=TARGET_HELP),
-    plate_file: str = typer.Option(None, "--plate", help="plate.json (from render-plate)."),
-    grid: str = typer.Option(None, help="The project's plate: rows x cols, e.g. 7x7 (without "
+    target: str = typer.Option(None, "--target", rich_help_panel=_TARGET,
+        help=TARGET_HELP),
+    plate_file: str = typer.Option(None, "--plate", rich_help_panel=_TARGET,
+        help="plate.json (from render-plate)."),
+    grid: str = typer.Option(None, rich_help_panel=_TARGET,
+        help="The project's plate: rows x cols, e.g. 7x7 (without "
                              "--plate)."),
-    spacing_mm: float = typer.Option(None, help="The project's plate: circle spacing in mm."),
-    diameter_mm: float = typer.Option(None, help="The project's plate: circle diameter in mm "
+    spacing_mm: float = typer.Option(None, rich_help_panel=_TARGET,
+        help="The project's plate: circle spacing in mm."),
+    diameter_mm: float = typer.Option(None, rich_help_panel=_TARGET,
+        help="The project's plate: circle diameter in mm "
                                       "(default: spacing/2)."),
-    model: str = typer.Option("division", help="division (HALCON area_scan_division), "
+    model: str = typer.Option("division", rich_help_panel=_MODEL,
+        help="division (HALCON area_scan_division), "
                               "polynomial (HALCON area_scan_polynomial) or opencv "
                               "(cv2.calibrateCamera, see --coefficients)."),
-    coefficients: str = typer.Option(None, help="--model opencv: the distortion coefficients "
+    coefficients: str = typer.Option(None, rich_help_panel=_MODEL,
+        help="--model opencv: the distortion coefficients "
                                      "to estimate, e.g. k1,k2,p1,p2,k3 (default), k1,k2, "
                                      "rational, none."),
-    pixel_height_um: float = typer.Option(3.45, help="Fixed pixel height Sy of the HALCON "
+    pixel_height_um: float = typer.Option(3.45, rich_help_panel=_MODEL,
+        help="Fixed pixel height Sy of the HALCON "
                                           "models, from the sensor's datasheet."),
-    bias_rounds: int = typer.Option(2, min=0, help="Rounds of the ellipse-centre bias "
+    bias_rounds: int = typer.Option(2, min=0, rich_help_panel=_MODEL,
+        help="Rounds of the ellipse-centre bias "
                                     "correction of circle targets (0: plain ellipse centres)."),
-    report: str = typer.Option(None, help="Report JSON (default: <out stem>.report.json)."),
-    overlays: str = typer.Option(None, help="Folder for an overlay per used image (points, "
+    report: str = typer.Option(None, rich_help_panel=_OUTPUT,
+        help="Report JSON (default: <out stem>.report.json)."),
+    overlays: str = typer.Option(None, rich_help_panel=_OUTPUT,
+        help="Folder for an overlay per used image (points, "
                                  "their order, residuals; default: <out stem>.overlays)."),
-    coverage: str = typer.Option(None, help="Coverage and residual map, PNG (default: "
+    coverage: str = typer.Option(None, rich_help_panel=_OUTPUT,
+        help="Coverage and residual map, PNG (default: "
                                  "<out stem>.coverage.png)."),
-    pictures: bool = typer.Option(True, "--pictures/--no-pictures", help="Write the overlays "
+    pictures: bool = typer.Option(True, "--pictures/--no-pictures", rich_help_panel=_OUTPUT,
+        help="Write the overlays "
                                   "and the coverage map."),
-    json_out: bool = typer.Option(False, "--json", help="Print the report as JSON."),
+    json_out: bool = typer.Option(False, "--json", rich_help_panel=_OUTPUT,
+        help="Print the report as JSON."),
 ):
     """Calibrate a camera from images of a calibration target: every image used or skipped
     with its reason, per-image RMS, flagged images, the parameters' standard deviations."""
