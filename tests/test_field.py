@@ -14,7 +14,7 @@ from cutterpose.geometry.holder import default_holder
 from cutterpose.geometry.pose import Pose, geodesic_deg
 from cutterpose.geometry.working_range import MotionRange
 from cutterpose.image import FeatureParams, detect_features
-from cutterpose.image.edges import fit_line, lmeds_line, tukey_line
+from cutterpose.image.lines import fit_line, lmeds_line, tukey_line
 from cutterpose.methods import get_method
 from cutterpose.pipeline import QualityLimits, measure
 from cutterpose.render.analytic import random_pose, render_holder

@@ -18,16 +18,8 @@ from cutterpose.geometry.holder import default_holder
 from cutterpose.geometry.pose import Pose, geodesic_deg
 from cutterpose.geometry.working_range import MotionRange
 from cutterpose.image import FeatureParams
-from cutterpose.image.edges import (
-    group_median,
-    lmeds_line,
-    lmeds_lines,
-    median_rows,
-    sample_profiles,
-    smooth_rows,
-    tukey_line,
-    tukey_lines,
-)
+from cutterpose.image.edges import group_median, sample_profiles, smooth_rows
+from cutterpose.image.lines import lmeds_line, lmeds_lines, median_rows, tukey_line, tukey_lines
 from cutterpose.image.region import _outline_template, correlate_templates
 from cutterpose.solvers import matching
 
@@ -109,7 +101,7 @@ def test_batched_tukey_lines_equal_one_line_at_a_time():
 def test_seeded_pairs_are_the_seeded_generators_first_draws():
     """LMedS's hypotheses: the cached, restored generator draws what a fresh
     ``default_rng(seed)`` draws, every time and in any order of seeds."""
-    from cutterpose.image.edges import _seeded_pairs
+    from cutterpose.image.lines import _seeded_pairs
 
     for seed, n, h in [(0, 900, 64), (7, 5, 64), (3, 10 ** 6, 16), (0, 900, 64), (7, 6, 64)]:
         rng = np.random.default_rng(seed)

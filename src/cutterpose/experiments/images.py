@@ -97,7 +97,7 @@ def _one_image(args):
         true_px = np.asarray(entry["corners_px"], float)
         info["rms_refined_px"] = corner_rms(feats.corners_px, true_px)
         # the paper's corners: the thresholded contour's lines, no gradient refinement
-        from ..image.edges import intersect_consecutive
+        from ..image.lines import intersect_consecutive
         info["rms_threshold_px"] = corner_rms(
             camera.distort_px(intersect_consecutive(feats.lines_threshold_ideal)), true_px)
     for m in methods:

@@ -14,7 +14,7 @@ import numpy as np
 from scipy.ndimage import gaussian_filter1d
 
 from ..errors import FeatureError
-from .edges import fit_line, line_from
+from .lines import fit_line, line_from
 from .params import FeatureParams, Segment, signed_area, where_px
 
 

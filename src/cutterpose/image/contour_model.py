@@ -21,15 +21,8 @@ from ..errors import FeatureError
 from ..geometry.camera import Camera
 from ..geometry.holder import Holder
 from ..geometry.pose import Pose
-from .edges import (
-    MAD_TO_SIGMA,
-    line_from,
-    mad_scale,
-    median_rows,
-    sample_profiles,
-    smooth_rows,
-    tukey_weights,
-)
+from .edges import sample_profiles, smooth_rows
+from .lines import MAD_TO_SIGMA, line_from, mad_scale, median_rows, tukey_weights
 from .params import Segment, signed_area, where_px
 
 if TYPE_CHECKING:

@@ -11,7 +11,7 @@ import numpy as np
 
 from ..errors import FeatureError
 from ..geometry.camera import Camera
-from .edges import intersect_consecutive
+from .lines import intersect_consecutive
 from .params import where_px
 
 

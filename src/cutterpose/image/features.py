@@ -57,7 +57,8 @@ from .corners import (
     check_families,
     corners_from_lines,
 )
-from .edges import edge_wear, intersect_consecutive, line_from, refine_lines, robust_edge_lines
+from .edges import edge_wear, refine_lines, robust_edge_lines
+from .lines import intersect_consecutive, line_from
 from .params import FeatureParams, Features, Segment, signed_area, where_px
 from .preprocessing import as_grey_u8, binarize, check_frame_size, check_image, reduce_image
 from .region import find_roi, match_outline

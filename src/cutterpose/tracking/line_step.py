@@ -33,7 +33,8 @@ import numpy as np
 from ..errors import InputError
 from ..geometry.pose import Pose, pixel_jacobian
 from ..image import FeatureParams
-from ..image.edges import intersect_consecutive, robust_edge_lines
+from ..image.edges import robust_edge_lines
+from ..image.lines import intersect_consecutive
 from ..pipeline import DOF_NAMES
 from .moved_model import offset_slope
 from .result import TrackResult
