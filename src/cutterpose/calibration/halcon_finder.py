@@ -9,15 +9,21 @@ Pipeline (one grey image, a :class:`~cutterpose.calibration.halcon_plate.Hexagon
    the binary image does not hide it);
 2. sub-pixel centres: ellipse fit on sub-pixel grey-level crossings of the mark's outer edge
    (the hole's edge is left out);
-3. finder patterns: every mark whose six nearest marks surround it is a candidate hexagon; its
-   hole flags (centre first, then the ring anticlockwise on the page) are compared with each
-   finder pattern of the description under the six rotations; a match gives seven
-   correspondences and a plate-to-image homography;
+3. finder patterns: around every mark with holed marks near it, the rings ``+-a, +-b,
+   +-(b - a)`` of pairs of lattice vectors to its nearest marks are candidate hexagons (the six
+   nearest marks are not the ring under strong tilt); a ring's hole flags (centre first, then
+   anticlockwise on the page) are compared with each finder pattern of the description under
+   the six rotations; a match whose seven points a homography of the plate's hexagon fits
+   gives a plate-to-image homography;
 4. hexagonal indexing: from the finder the match grows ring by ring over the plate's
    neighbour graph: each unmatched mark next to matched ones is predicted by a homography of
    the matched marks around it (local, so lens distortion does not accumulate) and takes the
-   nearest detected mark within a third of the local spacing. Every mark found carries its
-   plate index (``ids``), so partial views of the plate are usable.
+   nearest detected mark of about its neighbours' size within a third of the local spacing;
+   marks that a robust local homography of their neighbours does not place (occluded,
+   fused with clutter) are dropped, and the holes seen must be the plate's (F1 >= 0.7: the
+   lattice fits itself under shifts and shears, only the holes tell the indexing).
+   Every mark found carries its plate index (``ids``), so partial views of the plate are
+   usable.
 
 Why by hand: OpenCV's ``findCirclesGrid`` knows rectangular and OpenCV's own asymmetric grids,
 needs the whole grid in view, and has no notion of holes or finder patterns; no library in
@@ -187,6 +193,30 @@ def _ring_order(centre, pts) -> np.ndarray:
     return np.argsort(ang)
 
 
+def _rings(marks: _Marks, c: int, tree, k: int = 10):
+    """Candidate neighbour rings of mark ``c``: for two lattice vectors ``a``, ``b`` among its
+    nearest marks, the six marks at ``+-a, +-b, +-(b - a)`` (an affine image of a hexagon).
+    Under strong tilt the six nearest marks are not always the ring, so every such pair is
+    tried; the hole pattern and the growth decide."""
+    _, idx = tree.query(marks.centre[c], k=min(k + 1, len(marks.centre)))
+    nb = idx[1:]
+    v = marks.centre[nb] - marks.centre[c]
+    out = set()
+    for i in range(min(6, len(nb))):
+        for j in range(i + 1, min(8, len(nb))):
+            a, b = v[i], v[j]
+            cross = abs(a[0] * b[1] - a[1] * b[0])
+            if cross < 0.3 * np.linalg.norm(a) * np.linalg.norm(b):
+                continue  # (nearly) collinear
+            want = marks.centre[c] + np.array([a, b, b - a, -a, -b, a - b])
+            d, j6 = tree.query(want)
+            if np.all(d < 0.2 * min(np.linalg.norm(a), np.linalg.norm(b))):
+                ring = j6[_ring_order(marks.centre[c], marks.centre[j6])]
+                if len(set(ring.tolist())) == 6 and c not in ring:
+                    out.add(tuple(ring.tolist()))
+    return [np.array(r) for r in out]
+
+
 def _seeds(marks: _Marks, plate):
     """Image hexagons that match one of the plate's finder patterns: (plate ids, blob ids)."""
     from scipy.spatial import cKDTree
@@ -195,26 +225,41 @@ def _seeds(marks: _Marks, plate):
     if n < 7:
         return []
     tree = cKDTree(marks.centre)
-    dist, idx = tree.query(marks.centre, k=7)
+    _, near = tree.query(marks.centre, k=min(11, n))
+    # a finder's centre has at least three holed marks among its nearest ten
+    cands = np.nonzero(marks.hole[near].sum(axis=1) >= 3)[0]
     seeds = []
-    for c in range(n):
-        ring_d = dist[c, 1:]
-        if ring_d.max() > 2.0 * ring_d.min():
-            continue
-        ring = idx[c, 1:][_ring_order(marks.centre[c], marks.centre[idx[c, 1:]])]
-        flags = np.concatenate([[marks.hole[c]], marks.hole[ring]])
-        if flags.sum() not in (4, 6):
-            continue
-        for pc, pring, pflags in plate.finders:
-            if flags[0] != pflags[0]:
+    for c in cands:
+        for ring in _rings(marks, c, tree):
+            flags = np.concatenate([[marks.hole[c]], marks.hole[ring]])
+            if flags.sum() not in (4, 6):
                 continue
-            for k in range(6):
-                rolled = np.roll(flags[1:], -k)
-                if np.array_equal(rolled, pflags[1:]):
-                    # plate ring j <-> image ring (j + k) % 6
-                    img = np.concatenate([[c], np.roll(ring, -k)])
-                    seeds.append((np.concatenate([[pc], pring]), img))
+            for pc, pring, pflags in plate.finders:
+                if flags[0] != pflags[0]:
+                    continue
+                for k in range(6):
+                    if np.array_equal(np.roll(flags[1:], -k), pflags[1:]):
+                        # plate ring j <-> image ring (j + k) % 6
+                        img = np.concatenate([[c], np.roll(ring, -k)])
+                        pl = np.concatenate([[pc], pring])
+                        if _is_hexagon(plate.marks_mm[pl], marks.centre[img]):
+                            seeds.append((pl, img))
     return seeds
+
+
+def _is_hexagon(plate_xy, img_xy, tol: float = 0.12) -> bool:
+    """The seven image points are a projected mark hexagon: a homography maps the plate's
+    hexagon onto them within ``tol`` of the ring's mean radius (clutter that happens to
+    show the hole flags of a finder pattern does not)."""
+    import cv2
+
+    H, _ = cv2.findHomography(plate_xy.astype(np.float64), img_xy.astype(np.float64), 0)
+    if H is None:
+        return False
+    ph = np.c_[plate_xy, np.ones(len(plate_xy))] @ H.T
+    err = np.linalg.norm(ph[:, :2] / ph[:, 2:] - img_xy, axis=1)
+    radius = np.mean(np.linalg.norm(img_xy[1:] - img_xy[0], axis=1))
+    return bool(np.all(np.isfinite(err)) and err.max() < tol * radius)
 
 
 def _grow(marks: _Marks, plate, seed_plate, seed_img, tol: float = 0.33):
@@ -252,7 +297,16 @@ def _grow(marks: _Marks, plate, seed_plate, seed_img, tol: float = 0.33):
             pred = ph[:, :2] / ph[:, 2:]
             step = np.linalg.norm(pred[len(ms):] - pred[:len(ms)], axis=1)
             dd, j = tree.query(pred[:len(ms)])
+            # a mark has about the size and shape of its neighbours (a mark cut by an occluder,
+            # or clutter, does not)
+            ax = marks.axes[[match[k] for k in near]]
+            size = np.median(ax.mean(axis=1))
+            shape = np.median(ax.min(axis=1) / ax.max(axis=1))
             for m, dm, jm, st in zip(ms, dd, j, step):
+                a = marks.axes[jm]
+                if not (0.8 < a.mean() / size < 1.25
+                        and abs(a.min() / a.max() - shape) < 0.12):
+                    continue
                 if np.isfinite(dm) and dm < tol * st and int(jm) not in used:
                     match[int(m)] = int(jm)
                     used.add(int(jm))
@@ -261,6 +315,36 @@ def _grow(marks: _Marks, plate, seed_plate, seed_img, tol: float = 0.33):
             break
     ids = np.array(sorted(match))
     return ids, np.array([match[k] for k in ids])
+
+
+def _prune(img: np.ndarray, plate, ids, blobs, tol: float = 0.06):
+    """Drop matched marks (plate ``ids``, image points ``img``, detected ``blobs``) that a
+    robust local homography of the matched marks around them
+    (``cv2.findHomography`` with RANSAC, one per cell of 3 x 3 spacings) does not place within
+    ``tol`` of the local spacing: a mark partly occluded or fused with clutter."""
+    import cv2
+
+    if len(ids) < 8:
+        return ids, blobs
+    xy, s = plate.marks_mm[ids], plate.spacing_mm
+    keep = np.ones(len(ids), bool)
+    cell = np.floor(xy / (3.0 * s)).astype(int)
+    _, group = np.unique(cell, axis=0, return_inverse=True)
+    for g in range(group.max() + 1):
+        sel = np.nonzero(group.ravel() == g)[0]
+        near = np.argsort(np.linalg.norm(xy - xy[sel].mean(axis=0), axis=1))[:max(16, len(sel))]
+        if len(near) < 8:
+            continue
+        H, _ = cv2.findHomography(xy[near].astype(np.float64), img[near].astype(np.float64),
+                                  cv2.RANSAC, 1.0)
+        if H is None:
+            continue
+        q = np.concatenate([xy[sel], xy[sel] + [s, 0.0]])
+        ph = np.c_[q, np.ones(len(q))] @ H.T
+        pred = ph[:, :2] / ph[:, 2:]
+        step = np.linalg.norm(pred[len(sel):] - pred[:len(sel)], axis=1)
+        keep[sel] &= np.linalg.norm(pred[:len(sel)] - img[sel], axis=1) < tol * step
+    return ids[keep], blobs[keep]
 
 
 def detect_hexagonal(gray, plate) -> TargetDetection:
@@ -285,26 +369,32 @@ def detect_hexagonal(gray, plate) -> TargetDetection:
         return TargetDetection.missing(f"no finder pattern seen whole ({len(marks.centre)} marks, "
                                    f"{int(marks.hole.sum())} with a hole)")
     best = None
-    for sp, si in seeds[:8]:
-        if best is not None and sp[0] in best[1]:
-            k = int(np.searchsorted(best[1], sp[0]))
-            if best[2][k] == si[0]:
-                continue  # this finder already lies where the best match put it
+    for sp, si in seeds[:12]:
+        if best is not None and (si[0] in best[2] and best[3] >= 0.9):
+            continue  # a convincing match already explains this finder's centre
         ids, blobs = _grow(marks, plate, sp, si)
-        # the holes found must agree with the plate's (a wrong seed disagrees widely)
-        agree = float(np.mean(marks.hole[blobs] == (plate.hole_radius_mm[ids] > 0)))
-        score = len(ids) * agree
-        if best is None or score > best[0]:
-            best = (score, ids, blobs, agree)
-    _, ids, blobs, agree = best
-    if agree < 0.95:
-        return TargetDetection.missing(f"finder pattern matched but {100 * (1 - agree):.0f} % of "
-                                   "the marks disagree with the plate's holes")
+        ids, blobs = _prune(marks.centre[blobs], plate, ids, blobs)
+        # holes where the plate has them and nowhere else: a wrong indexing (the hexagonal
+        # lattice fits itself under many shifts and shears) puts the holes elsewhere
+        holed, seen = plate.hole_radius_mm[ids] > 0, marks.hole[blobs]
+        both = float(np.sum(holed & seen))
+        f1 = 2 * both / max(holed.sum() + seen.sum(), 1) if holed.sum() >= 4 else 0.0
+        if best is None or len(ids) * f1 > best[0]:
+            best = (len(ids) * f1, ids, blobs, f1)
+    _, ids, blobs, f1 = best
+    if f1 < 0.7 or len(ids) < 12:
+        return TargetDetection.missing(
+            f"finder pattern matched but the plate does not follow from it ({len(ids)} marks, "
+            f"holes agree F1 = {f1:.2f})")
     gm = g if light else 255 - g
     pts = [_refine_centre(gm, marks.centre[b], marks.axes[b], marks.angle[b]) for b in blobs]
     ok = np.array([p is not None for p in pts])
     if ok.sum() < 7:
         return TargetDetection.missing("too few marks with a measurable edge")
-    finders = len({f[0] for f in plate.finders} & set(ids[ok].tolist()))
-    return TargetDetection(np.array([p for p in pts if p is not None]), ids[ok],
-                           axes_px=marks.axes[blobs[ok]], info={"finders": finders})
+    # once more on the sub-pixel centres: an edge disturbed by clutter moves its centre
+    pts = np.array([p for p in pts if p is not None])
+    ids, blobs = ids[ok], blobs[ok]
+    keep = np.isin(ids, _prune(pts, plate, ids, blobs)[0])
+    finders = len({f[0] for f in plate.finders} & set(ids[keep].tolist()))
+    return TargetDetection(pts[keep], ids[keep], axes_px=marks.axes[blobs[keep]],
+                           info={"finders": finders})
