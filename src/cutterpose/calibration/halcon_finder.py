@@ -262,9 +262,25 @@ def _is_hexagon(plate_xy, img_xy, tol: float = 0.12) -> bool:
     return bool(np.all(np.isfinite(err)) and err.max() < tol * radius)
 
 
+def _local_prediction(src_mm, dst_px, at_mm, spacing_mm: float, method):
+    """Image positions of the plate points ``at_mm`` by the homography ``src_mm -> dst_px``
+    (``cv2.findHomography`` with ``method``: 0 or ``cv2.RANSAC`` at 1 px), and the local image
+    length of one spacing along the plate's x at each; None when no homography is found."""
+    import cv2
+
+    H, _ = cv2.findHomography(np.asarray(src_mm, np.float64), np.asarray(dst_px, np.float64),
+                              method, 1.0)
+    if H is None:
+        return None
+    q = np.concatenate([at_mm, at_mm + [spacing_mm, 0.0]])
+    ph = np.c_[q, np.ones(len(q))] @ H.T
+    pred = ph[:, :2] / ph[:, 2:]
+    n = len(at_mm)
+    return pred[:n], np.linalg.norm(pred[n:] - pred[:n], axis=1)
+
+
 def _grow(marks: _Marks, plate, seed_plate, seed_img, tol: float = 0.33):
     """Match plate marks to detected marks outward from a seed (module docstring, step 4)."""
-    import cv2
     from scipy.spatial import cKDTree
 
     tree = cKDTree(marks.centre)
@@ -287,16 +303,12 @@ def _grow(marks: _Marks, plate, seed_plate, seed_img, tol: float = 0.33):
             near = known[np.argsort(d)[:12]]
             if len(near) < 4:
                 continue
-            H, _ = cv2.findHomography(xy[near].astype(np.float64),
-                                      marks.centre[[match[k] for k in near]].astype(np.float64),
-                                      0)
-            if H is None:
+            got = _local_prediction(xy[near], marks.centre[[match[k] for k in near]], xy[ms],
+                                    s, 0)
+            if got is None:
                 continue
-            q = np.concatenate([xy[ms], xy[ms] + [s, 0.0]])
-            ph = np.c_[q, np.ones(len(q))] @ H.T
-            pred = ph[:, :2] / ph[:, 2:]
-            step = np.linalg.norm(pred[len(ms):] - pred[:len(ms)], axis=1)
-            dd, j = tree.query(pred[:len(ms)])
+            pred, step = got
+            dd, j = tree.query(pred)
             # a mark has about the size and shape of its neighbours (a mark cut by an occluder,
             # or clutter, does not)
             ax = marks.axes[[match[k] for k in near]]
@@ -335,15 +347,9 @@ def _prune(img: np.ndarray, plate, ids, blobs, tol: float = 0.06):
         near = np.argsort(np.linalg.norm(xy - xy[sel].mean(axis=0), axis=1))[:max(16, len(sel))]
         if len(near) < 8:
             continue
-        H, _ = cv2.findHomography(xy[near].astype(np.float64), img[near].astype(np.float64),
-                                  cv2.RANSAC, 1.0)
-        if H is None:
-            continue
-        q = np.concatenate([xy[sel], xy[sel] + [s, 0.0]])
-        ph = np.c_[q, np.ones(len(q))] @ H.T
-        pred = ph[:, :2] / ph[:, 2:]
-        step = np.linalg.norm(pred[len(sel):] - pred[:len(sel)], axis=1)
-        keep[sel] &= np.linalg.norm(pred[:len(sel)] - img[sel], axis=1) < tol * step
+        got = _local_prediction(xy[near], img[near], xy[sel], s, cv2.RANSAC)
+        if got is not None:
+            keep[sel] &= np.linalg.norm(got[0] - img[sel], axis=1) < tol * got[1]
     return ids[keep], blobs[keep]
 
 
