@@ -136,33 +136,10 @@ class AnalyticScene:
             cv2.line(scr, (int(p[0] * 16), int(p[1] * 16)), (int(q[0] * 16), int(q[1] * 16)),
                      float(rng.choice([-1.0, 1.0]) * rng.uniform(0.15, 0.35)), 1, cv2.LINE_AA, 4)
         alb += scr
-        # corrosion blotches: thresholded low-frequency noise, dark, dull and pitted
         if s.corrosion > 0:
-            f = fractal_noise((h, w), rng, 240 * t, 5)
-            thr = np.quantile(f[::8, ::8], 1.0 - s.corrosion)
-            blot = np.clip((f - thr) / 0.35, 0.0, 1.0)
-            grain = 0.5 + 0.5 * np.clip(fractal_noise((h, w), rng, 6 * t, 3), -1, 1)
-            pits = (rng.random((h, w), dtype=np.float32) < 0.004 / t**2 * blot).astype(np.float32)
-            pits = cv2.GaussianBlur(pits, (0, 0), max(0.5, 0.7 * t)) * 2.5
-            alb *= (1.0 - s.corrosion_darkening * blot * (0.6 + 0.4 * grain)) * np.clip(
-                1.0 - pits, 0.2, 1.0)
-            gloss *= 1.0 - 0.9 * blot
-        # worn band along the inner contour: a rounded, chipped, dull edge of varying width.
-        # Its normal turns away from the light, so it darkens towards the contour; chips are
-        # bites of the band into the face.
+            self._corrode(alb, gloss, rng, t)
         if s.edge_wear_mm > 0:
-            pocket = np.zeros((h, w), np.uint8)
-            pts = np.round((self.holder.corners_mm - [x0, y0]) / texel * 16).astype(np.int32)
-            cv2.fillPoly(pocket, [pts], 1, cv2.LINE_8, 4)
-            dist_mm = cv2.distanceTransform(1 - pocket, cv2.DIST_L2, 5) * texel
-            width = s.edge_wear_mm * np.clip(1.0 + 0.7 * fractal_noise((h, w), rng, 120 * t, 3),
-                                             0.15, 3.0)
-            chips = np.clip(fractal_noise((h, w), rng, 10 * t, 2) - 1.2, 0.0, None) * 2.5
-            width = width * (1.0 + chips)
-            band = np.clip(1.0 - dist_mm / width, 0.0, 1.0) ** 0.8
-            grime = 0.5 + 0.5 * np.clip(fractal_noise((h, w), rng, 4 * t, 2), -1, 1)
-            alb *= 1.0 - s.edge_wear_darkening * band * (0.75 + 0.25 * grime)
-            gloss *= 1.0 - band
+            self._wear_edge(alb, gloss, rng, t, x0, y0, texel)
         self.top_albedo = _Texture((s.top_albedo * np.clip(alb, 0.05, 2.0)).astype(np.float32),
                                    x0, y0, texel)
         self.top_gloss = _Texture(np.clip(gloss, 0, 1).astype(np.float32), x0, y0, texel)
@@ -181,6 +158,43 @@ class AnalyticScene:
         wl = np.exp(0.3 * fractal_noise((512, int(max(per, per_o) * 2) + 4), r_wall, 30,
                                         4)).astype(np.float32)
         self.wall_tex = _Texture(wl, 0.0, 0.0, 0.5)
+
+    def _corrode(self, alb: np.ndarray, gloss: np.ndarray, rng, t: float) -> None:
+        """Corrosion on the top face's albedo and gloss (in place; ``t``: texels per 0.25 mm)."""
+        s = self.s
+        h, w = alb.shape
+        # corrosion blotches: thresholded low-frequency noise, dark, dull and pitted
+        f = fractal_noise((h, w), rng, 240 * t, 5)
+        thr = np.quantile(f[::8, ::8], 1.0 - s.corrosion)
+        blot = np.clip((f - thr) / 0.35, 0.0, 1.0)
+        grain = 0.5 + 0.5 * np.clip(fractal_noise((h, w), rng, 6 * t, 3), -1, 1)
+        pits = (rng.random((h, w), dtype=np.float32) < 0.004 / t**2 * blot).astype(np.float32)
+        pits = cv2.GaussianBlur(pits, (0, 0), max(0.5, 0.7 * t)) * 2.5
+        alb *= (1.0 - s.corrosion_darkening * blot * (0.6 + 0.4 * grain)) * np.clip(
+            1.0 - pits, 0.2, 1.0)
+        gloss *= 1.0 - 0.9 * blot
+
+    def _wear_edge(self, alb: np.ndarray, gloss: np.ndarray, rng, t: float, x0: float,
+                   y0: float, texel: float) -> None:
+        """The worn band along the inner contour on the top face's albedo and gloss (in place;
+        the texture's origin ``(x0, y0)`` and ``texel`` mm)."""
+        s = self.s
+        h, w = alb.shape
+        # worn band along the inner contour: a rounded, chipped, dull edge of varying width.
+        # Its normal turns away from the light, so it darkens towards the contour; chips are
+        # bites of the band into the face.
+        pocket = np.zeros((h, w), np.uint8)
+        pts = np.round((self.holder.corners_mm - [x0, y0]) / texel * 16).astype(np.int32)
+        cv2.fillPoly(pocket, [pts], 1, cv2.LINE_8, 4)
+        dist_mm = cv2.distanceTransform(1 - pocket, cv2.DIST_L2, 5) * texel
+        width = s.edge_wear_mm * np.clip(1.0 + 0.7 * fractal_noise((h, w), rng, 120 * t, 3),
+                                         0.15, 3.0)
+        chips = np.clip(fractal_noise((h, w), rng, 10 * t, 2) - 1.2, 0.0, None) * 2.5
+        width = width * (1.0 + chips)
+        band = np.clip(1.0 - dist_mm / width, 0.0, 1.0) ** 0.8
+        grime = 0.5 + 0.5 * np.clip(fractal_noise((h, w), rng, 4 * t, 2), -1, 1)
+        alb *= 1.0 - s.edge_wear_darkening * band * (0.75 + 0.25 * grime)
+        gloss *= 1.0 - band
 
     # --- ray casting -----------------------------------------------------------------------
     def trace(self, xn: np.ndarray, yn: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -220,6 +234,7 @@ class AnalyticScene:
             value[i] = shade_points(cos_flat[i], s0[i] * norm_d[i],
                                     self.top_albedo(X0[i], Y0[i]), self.top_gloss(X0[i], Y0[i]),
                                     falloff[i], s)
+        rays = (X0, Y0, s0, dx, dy, norm_d, falloff, cos_flat)
         # pocket: first wall crossed between Z = 0 and the floor, else the floor
         i = np.flatnonzero(in_pocket)
         if i.size:
@@ -227,20 +242,10 @@ class AnalyticScene:
             s1 = (D - o[2]) / dz[i]
             X1, Y1 = o[0] + s1 * dx[i], o[1] + s1 * dy[i]
             frac, edge = _first_crossing(X0[i], Y0[i], X1, Y1, self.edges)
-            wall = edge >= 0
-            fl = i[~wall]
-            label[fl] = FLOOR
-            value[fl] = shade_points(cos_flat[fl], s1[~wall] * norm_d[fl],
-                                     self.floor_albedo(X1[~wall], Y1[~wall]), np.float32(0.1),
-                                     falloff[fl], s)
-            wi = i[wall]
-            if wi.size:
-                e = edge[wall]
-                label[wi] = WALL + e.astype(np.uint8)
-                value[wi] = self._shade_wall(
-                    wi, e, frac[wall], s1[wall], D, (X0, Y0, s0, X1[wall], Y1[wall]),
-                    (dx, dy, norm_d, falloff), self.edges, self.inward, self.arc0,
-                    s.wall_albedo)
+            self._shade_behind(i, D, (s1, X1, Y1, frac, edge), rays, label, value,
+                               (FLOOR, self.floor_albedo),
+                               (lambda e: WALL + e.astype(np.uint8), self.edges, self.inward,
+                                self.arc0, s.wall_albedo))
         # outside the holder: its outer side walls, else the cutterhead
         i = np.flatnonzero(ok & ~in_rect)
         if i.size:
@@ -256,21 +261,35 @@ class AnalyticScene:
             edge = np.full(i.size, -1, np.int64)
             frac[near], edge[near] = _first_crossing(X0[i[near]], Y0[i[near]], X1[near],
                                                      Y1[near], self.rect_edges)
-            wall = edge >= 0
-            ci = i[~wall]
-            label[ci] = CUTTERHEAD
-            value[ci] = shade_points(cos_flat[ci], s1[~wall] * norm_d[ci],
-                                     self.cut_albedo(X1[~wall], Y1[~wall]), np.float32(0.1),
-                                     falloff[ci], s)
-            wi = i[wall]
-            if wi.size:
-                e = edge[wall]
-                label[wi] = OUTER_WALL
-                value[wi] = self._shade_wall(
-                    wi, e, frac[wall], s1[wall], C, (X0, Y0, s0, X1[wall], Y1[wall]),
-                    (dx, dy, norm_d, falloff), self.rect_edges, self.rect_outward,
-                    self.rect_arc0, s.outer_wall_albedo)
+            self._shade_behind(i, C, (s1, X1, Y1, frac, edge), rays, label, value,
+                               (CUTTERHEAD, self.cut_albedo),
+                               (lambda e: OUTER_WALL, self.rect_edges, self.rect_outward,
+                                self.rect_arc0, s.outer_wall_albedo))
         return label, value
+
+    def _shade_behind(self, i, depth, hits, rays, label, value, plane, walls) -> None:
+        """Label and shade the rays ``i`` that go on behind ``Z = 0`` into a region bounded by
+        walls and a back plane at ``depth`` (the pocket and its floor, or the holder's outer
+        walls and the cutterhead): ``hits = (s1, X1, Y1, frac, edge)``, each ray's depth and
+        point on the back plane and the first wall it crosses (``edge < 0``: none);
+        ``plane = (label, albedo texture)``, ``walls = (label of edges e, edges, normals,
+        arc0, albedo)``."""
+        s1, X1, Y1, frac, edge = hits
+        X0, Y0, s0, dx, dy, norm_d, falloff, cos_flat = rays
+        wall = edge >= 0
+        pi = i[~wall]
+        label[pi] = plane[0]
+        value[pi] = shade_points(cos_flat[pi], s1[~wall] * norm_d[pi],
+                                 plane[1](X1[~wall], Y1[~wall]), np.float32(0.1),
+                                 falloff[pi], self.s)
+        wi = i[wall]
+        if wi.size:
+            e = edge[wall]
+            wall_label, edges, normals, arc0, albedo = walls
+            label[wi] = wall_label(e)
+            value[wi] = self._shade_wall(
+                wi, e, frac[wall], s1[wall], depth, (X0, Y0, s0, X1[wall], Y1[wall]),
+                (dx, dy, norm_d, falloff), edges, normals, arc0, albedo)
 
     def _trace_broken_edges(self, ok, top, in_pocket, X0, Y0, s0, ray, falloff, label, value):
         """Rays that meet the broken pocket edge: shaded here and removed from ``top`` /
