@@ -1,7 +1,10 @@
 """Hand-eye calibration on real photographs (issue 29): robot_cal_tools' rct_10x10 set.
 
+    cutterpose calibrate tests/data/real/rct_10x10/images --target circles:10x10:25.4:origin-dot \\
+        --model opencv --out results/rct_camera.json
     PYTHONPATH=src python benchmarks/handeye_real.py --data tests/data/real/rct_10x10 \\
-        --target circles:10x10:25.4:origin-dot --out results/handeye_real
+        --camera results/rct_camera.json --out results/handeye_real \\
+        --figure docs/img/handeye_rct_overlay.jpg
 
 15 webcam images (640 x 480) of a 10 x 10 circle grid with an origin dot, the robot's
 base -> tool0 pose per image (ROS YAML). Steps, all on the same detections:
@@ -75,6 +78,29 @@ def _predict_rms(cam, points_mm, A: Pose, X: Pose, Y: Pose, obs: np.ndarray) -> 
                                            axis=1))))
 
 
+def overlay(paths_by_name: dict, names: list, pts, cam, target: TargetModel, A, X, Y,
+            stations, out: Path) -> None:
+    """The best and the worst station side by side: detected centres (green) and the target
+    projected from the robot pose through the calibration (red, X^-1 A_i^-1 Y)."""
+    order = np.argsort([s.rms_px for s in stations])
+    tiles = []
+    for k in (order[0], order[-1]):
+        img = cv2.cvtColor(cv2.imread(str(paths_by_name[names[k]])), cv2.COLOR_BGR2GRAY)
+        img = cv2.cvtColor(img, cv2.COLOR_GRAY2BGR)
+        pred = cam.project((X.inverse() @ A[k].inverse() @ Y).apply(target.points_mm))
+        for (u, v), (pu, pv) in zip(pts[k], pred):
+            if np.isfinite(u):
+                cv2.circle(img, (int(round(u)), int(round(v))), 3, (0, 200, 0), 1, cv2.LINE_AA)
+            cv2.drawMarker(img, (int(round(pu)), int(round(pv))), (0, 0, 255),
+                           cv2.MARKER_CROSS, 6, 1, cv2.LINE_AA)
+        s = stations[k]
+        cv2.putText(img, f"{s.name}: {s.rms_px:.1f} px, motion {s.motion_deg:.2f} deg"
+                    + ("" if s.used else " (outlier)"), (8, 22), cv2.FONT_HERSHEY_SIMPLEX,
+                    0.6, (0, 0, 255), 1, cv2.LINE_AA)
+        tiles.append(img)
+    cv2.imwrite(str(out), np.concatenate(tiles, axis=1), [cv2.IMWRITE_JPEG_QUALITY, 80])
+
+
 def leave_one_out(A, pts, cam, target: TargetModel, rep):
     """method -> list of the left-out station's prediction RMS [px]."""
     out: dict = {}
@@ -129,6 +155,8 @@ def main() -> None:
     ap.add_argument("--repeatability-mm", type=float, default=0.1)
     ap.add_argument("--repeatability-deg", type=float, default=0.01)
     ap.add_argument("--out", default="results/handeye_real")
+    ap.add_argument("--figure", default=None, help="write the overlay of the best and the "
+                    "worst station (PNG)")
     a = ap.parse_args()
     from cutterpose.calibration.targets import target_from_spec
 
@@ -152,6 +180,9 @@ def main() -> None:
     ocv = {m: r.starts[m][0] for m in OPENCV_METHODS if not isinstance(r.starts[m], str)}
     m_deg = np.array([s.motion_deg for s in r.stations])
     m_mm = np.array([s.motion_mm for s in r.stations])
+    if a.figure:
+        overlay({p.name: p for p in paths}, names, pts, cam, model, A, X, r.T_base_plate,
+                r.stations, Path(a.figure))
     loo = leave_one_out(A, pts, cam, model, rep)
     flip = flipped_check(A, pts, cam, model, rep, X)
     res = {
@@ -168,6 +199,8 @@ def main() -> None:
         "spread_all_opencv": _spread(ocv),
         "spread_without_daniilidis_li": _spread({m: v for m, v in ocv.items()
                                                  if m not in ("daniilidis", "li")}),
+        "spread_tsai_park_horaud_shah": _spread({m: v for m, v in ocv.items()
+                                                 if m in ("tsai", "park", "horaud", "shah")}),
         "motion_mismatch": {"median_deg": float(np.median(m_deg)),
                             "median_mm": float(np.median(m_mm)),
                             "per_station_deg": m_deg.tolist()},
@@ -178,7 +211,8 @@ def main() -> None:
     (out / "handeye_real.json").write_text(json.dumps(res, indent=1) + "\n")
     (out / "handeye_real_report.md").write_text(report_markdown(r, "rct_10x10"))
     print(json.dumps({k: res[k] for k in ("refined", "plate_spread", "spread_all_opencv",
-                                          "spread_without_daniilidis_li", "motion_mismatch",
+                                          "spread_without_daniilidis_li",
+                                          "spread_tsai_park_horaud_shah", "motion_mismatch",
                                           "leave_one_out_px", "flipped_check", "seconds")},
                      indent=1))
 
