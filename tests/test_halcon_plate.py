@@ -198,8 +198,11 @@ def test_target_interface(tmp_path):
     assert hexp.rotation_symmetry_deg == 0 and caltab.rotation_symmetry_deg == 0
     # the caltab from its .descr is detected by the caltab detector, all 49 points in order
     cam = CAM
-    # poses from the CirclePlate: its sampler keeps the triangular mark in view too
-    pose = sample_plate_poses(cam, 1, caltab.geometry.plate, distance_mm=(800, 900), seed=2)[0]
+    # the sampler keeps the triangular mark in view too (HalconPlate.mark_vertices_mm)
+    poses = sample_plate_poses(cam, 6, caltab, distance_mm=(800, 900), seed=2)
+    tri = np.c_[caltab.mark_vertices_mm, np.zeros(3)]
+    assert all(np.all(cam.in_image(cam.project(p.apply(tri)))) for p in poses)
+    pose = poses[0]
     det = caltab.detect(render_plate(cam, pose, caltab))
     assert det and np.array_equal(det.ids, np.arange(49))
     truth = cam.project(pose.apply(caltab.points_target_mm))

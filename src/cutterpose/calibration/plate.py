@@ -306,7 +306,11 @@ def _keep_in_view(plate):
                 plate.diameter_mm, 6.0)
     circles = plate.circle_outline_mm(16)
     if circles is not None:
-        return circles.reshape(-1, 3), float(getattr(plate, "diameter_mm", 1.0)), 6.0
+        pts = circles.reshape(-1, 3)
+        mark = getattr(plate, "mark_vertices_mm", None)  # an orientation mark is needed too
+        if mark is not None:
+            pts = np.concatenate([pts, np.c_[mark, np.zeros(len(mark))]])
+        return pts, float(getattr(plate, "diameter_mm", 1.0)), 6.0
     marker = getattr(plate, "marker_mm", None)
     if marker is not None:  # ArUco markers need ~3 px per cell (6x6 bits with the border)
         return plate.outline_mm(8), float(marker), 20.0
