@@ -344,3 +344,22 @@ def test_flange_positions_in_the_wrong_unit_are_refused():
     with pytest.raises(InputError, match="mm read as metres"):
         check_flange_units(mm_as_metres)
     check_flange_units([Pose(np.eye(3), [700.0, 0.0, 850.0], "base", "flange")])
+
+
+def test_robot_cal_tools_data_set_file_names_poses_after_their_images():
+    from pathlib import Path
+
+    from cutterpose.robot.pose_files import pair_with_images, read_pose_set
+
+    data = Path(__file__).parent / "data" / "real" / "rct_10x10"
+    s = read_pose_set(data / "cal_data.yaml")
+    folder = read_pose_set(data / "poses")
+    assert sorted(s.names, key=int) == [str(k) for k in range(15)]
+    for name, p in zip(s.names, s.poses):
+        q = folder.poses[folder.names.index(name)]
+        np.testing.assert_allclose(p.t_mm, q.t_mm)
+        np.testing.assert_allclose(p.R, q.R)
+    # metres read as such: the flange ~0.7-1 m from the base
+    assert 500 < np.linalg.norm(s.poses[0].t_mm) < 1500
+    images = sorted(f"{k}.png" for k in range(15))  # 0, 1, 10, 11, ..., 2, ...
+    assert [s.names[j] + ".png" for j in pair_with_images(images, s.names)] == images

@@ -19,7 +19,9 @@ format         content                                                          
 =============  ==================================================================  ===========
 
 A folder is read as one station per file (every pose file in it, natural order: ``2.yaml``
-before ``10.yaml``). Each pose gets a name: the file's stem, ``stem:Cnnnnn`` for a job file's
+before ``10.yaml``); robot_cal_tools' ``cal_data.yaml`` (a list of ``{pose: FILE, image:
+FILE}``) reads each pose file it names, the pose named after its image.
+Each pose gets a name: the file's stem, ``stem:Cnnnnn`` for a job file's
 variable, ``stem:k`` for row ``k`` of a many-pose file. :func:`pair_with_images` pairs poses
 and images by the number in their names when both have one (``images/3.png`` with
 ``poses/3.yaml``, ``image-3.png`` with ``pose_fPe_3.yaml``), else in order.
@@ -133,6 +135,8 @@ def _read_yaml(path: Path, fmt: str, to_frame: str, from_frame: str):
     if fmt == "auto":
         fmt = "visp-yaml" if isinstance(doc, dict) and "rows" in doc and "data" in doc \
             else "ros-yaml"
+    if _is_data_set(doc):
+        return _read_data_set(doc, path, to_frame, from_frame)
     if fmt == "visp-yaml":
         if not isinstance(doc, dict):
             raise InputError(f"{where}: expected a ViSP pose vector (rows, cols, data)")
@@ -151,6 +155,27 @@ def _read_yaml(path: Path, fmt: str, to_frame: str, from_frame: str):
     except InputError as e:
         raise InputError(f"{where}: {e}") from None
     return poses, suffixes, fmt
+
+
+def _is_data_set(doc) -> bool:
+    """robot_cal_tools' ``cal_data.yaml``: a list of ``{pose: FILE, image: FILE}``."""
+    return (isinstance(doc, list) and bool(doc) and all(isinstance(d, dict) for d in doc)
+            and all(isinstance(d.get("pose"), str) for d in doc))
+
+
+def _read_data_set(doc: list, path: Path, to_frame: str, from_frame: str):
+    """Each entry's pose file (relative to the data set file), named after its image."""
+    poses, names = [], []
+    for k, d in enumerate(doc):
+        f = path.parent / d["pose"]
+        if not f.is_file():
+            raise InputError(f"{path}: entry {k}: pose file {d['pose']} not found")
+        one, _, _ = _read_yaml(f, "auto", to_frame, from_frame)
+        if len(one) != 1:
+            raise InputError(f"{f}: a data set entry's pose file must hold one pose")
+        poses.append(one[0])
+        names.append("@" + Path(str(d.get("image") or d["pose"])).stem)
+    return poses, names, "ros-yaml"
 
 
 _JBI_C = re.compile(r"^C(\d{5})\s*=\s*(.*)$")
@@ -243,7 +268,9 @@ def read_pose_file(path, fmt: str = "auto", convention: str | None = None,
     else:
         raise InputError(f"{p}: unknown pose file type {p.suffix!r}; give --pose-format (one of "
                          f"{', '.join(POSE_FORMATS[1:])})")
-    return PoseSet(poses, [p.stem + s for s in suffixes], fmts)
+    # "@name": a data set entry named after its image; else the file's stem (and its row)
+    names = [q[1:] if q.startswith("@") else p.stem + q for q in suffixes]
+    return PoseSet(poses, names, fmts)
 
 
 def read_pose_set(path, fmt: str = "auto", convention: str | None = None,
