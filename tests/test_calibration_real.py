@@ -189,3 +189,14 @@ def test_cli_calibrate_real_images_writes_overlays_and_coverage(tmp_path):
     r = CliRunner().invoke(app, ["calibrate", str(VISP[0]), "--target", "circles:6x6:30",
                                  "--grid", "6x6", "--out", str(out)])
     assert r.exit_code == 2 and "not both" in r.output
+
+
+def test_an_ill_conditioned_model_warns_instead_of_diverging():
+    """The rational model (8 coefficients) from 4 images is not determined: the bias
+    correction would throw the fit off; it is stopped, said, and the fit stays at the
+    reference's RMS."""
+    res = calibrate_target_images(VISP, "circles:6x6:30", model="opencv",
+                                  coefficients="rational")
+    rms_ref, _ = opencv_reference(VISP, 6, 6, cv2.CALIB_RATIONAL_MODEL)
+    assert res.rms_px <= rms_ref + 1e-3
+    assert any("poorly determined" in w for w in res.warnings)

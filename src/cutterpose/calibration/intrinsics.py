@@ -241,6 +241,7 @@ class CalibrationResult:
         (residuals = projected - measured, after the bias correction), or None.
     flagged : name -> why, of the used images whose residuals stand out.
     target, model, coefficients, image_size_px : what was calibrated, and how.
+    warnings : what the user should know (e.g. poorly determined parameters).
     """
 
     camera: Camera
@@ -257,6 +258,7 @@ class CalibrationResult:
     model: str | None = None
     coefficients: list | None = None
     image_size_px: tuple | None = None
+    warnings: list = field(default_factory=list)
 
     def to_dict(self) -> dict:
         d = {"camera": self.camera.to_dict(), "rms_px": self.rms_px,
@@ -266,7 +268,8 @@ class CalibrationResult:
              "uncorrected": self.uncorrected}
         if self.target is not None:
             d.update(target=self.target, model=self.model, coefficients=self.coefficients,
-                     image_size_px=self.image_size_px, flagged=self.flagged)
+                     image_size_px=self.image_size_px, flagged=self.flagged,
+                     warnings=self.warnings)
         if self.views is not None:
             d["images"] = {v["name"]: {
                 "rms_px": float(np.sqrt(np.mean(np.sum(v["residuals_px"] ** 2, axis=1)))),

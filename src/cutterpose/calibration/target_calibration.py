@@ -37,7 +37,7 @@ from .intrinsics import CalibrationResult
 from .plate import ellipse_center_bias_px
 from .targets import Target, target_from_spec
 
-__all__ = ["TargetView", "detect_views", "parse_coefficients", "fit_opencv",
+__all__ = ["TargetView", "detect_views", "parse_coefficients", "opencv_flags", "fit_opencv",
            "calibrate_target", "calibrate_target_images", "flag_outliers", "MODELS",
            "OPENCV_COEFFICIENTS"]
 
@@ -128,7 +128,7 @@ def parse_coefficients(text: str | None) -> tuple[str, ...]:
     return tuple(c for c in OPENCV_COEFFICIENTS if c in out)
 
 
-def _opencv_flags(coefs: tuple[str, ...]) -> int:
+def opencv_flags(coefs: tuple[str, ...]) -> int:
     import cv2
 
     flags = 0
@@ -143,9 +143,12 @@ def _opencv_flags(coefs: tuple[str, ...]) -> int:
     return flags
 
 
-def fit_opencv(X_views, px_views, image_size_px, coefficients=DEFAULT_COEFFICIENTS):
+def fit_opencv(X_views, px_views, image_size_px, coefficients=DEFAULT_COEFFICIENTS,
+               start=None):
     """OpenCV's model over ragged views. Returns ``(camera, poses, residuals per view, std)``
-    with the standard deviation of fx, fy, cx, cy and every estimated coefficient."""
+    with the standard deviation of fx, fy, cx, cy and every estimated coefficient. ``start``:
+    an OpenCVCamera to start from (``CALIB_USE_INTRINSIC_GUESS``; the bias-correction rounds
+    start from the previous round, which keeps a many-coefficient fit in its minimum)."""
     import cv2
 
     coefs = parse_coefficients(coefficients) if isinstance(coefficients, str) or \
@@ -154,9 +157,15 @@ def fit_opencv(X_views, px_views, image_size_px, coefficients=DEFAULT_COEFFICIEN
     img = [np.asarray(p, np.float32).reshape(-1, 1, 2) for p in px_views]
     crit = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 200, 1e-12)
     size = tuple(int(v) for v in image_size_px)
+    flags = opencv_flags(coefs)
+    K0 = d0 = None
+    if start is not None:
+        flags |= cv2.CALIB_USE_INTRINSIC_GUESS
+        K0 = np.array(start.K, float)
+        d0 = np.zeros(8)
+        d0[:len(start.dist_coeffs)] = start.dist_coeffs
     try:
-        out = cv2.calibrateCameraExtended(obj, img, size, None, None,
-                                          flags=_opencv_flags(coefs), criteria=crit)
+        out = cv2.calibrateCameraExtended(obj, img, size, K0, d0, flags=flags, criteria=crit)
     except cv2.error as e:
         raise DegenerateInputError(f"OpenCV's calibration failed: {e.err}") from None
     _, K, dist, rvecs, tvecs, sd_intr = out[:6]
@@ -172,6 +181,28 @@ def fit_opencv(X_views, px_views, image_size_px, coefficients=DEFAULT_COEFFICIEN
     sd = np.ravel(sd_intr)
     std = {n: float(v) for n, v in zip(names, sd) if n.endswith("_px") or n in coefs}
     return cam, poses, res, std
+
+
+def _rms_of(residuals) -> float:
+    return float(np.sqrt(np.mean(np.concatenate([np.sum(r**2, axis=1) for r in residuals]))))
+
+
+def _poorly_determined(std: dict, camera) -> list:
+    """Warnings for parameters whose standard deviation is large (focal length over 1 %,
+    principal point over 2 % of the image size)."""
+    out = []
+    K = getattr(camera, "K", None)
+    if K is None:
+        return out
+    w, h = camera.image_size_px
+    for key, ref in (("fx_px", K[0, 0]), ("fy_px", K[1, 1])):
+        if std.get(key, 0) > 0.01 * ref:
+            out.append(f"{key} is poorly determined (std {std[key]:.3g} px): more images, more "
+                       "tilt, or fewer distortion coefficients")
+    for key, ref in (("cx_px", w), ("cy_px", h)):
+        if std.get(key, 0) > 0.02 * ref:
+            out.append(f"{key} is poorly determined (std {std[key]:.3g} px)")
+    return out
 
 
 def flag_outliers(names, residuals, per_image_rms) -> dict:
@@ -223,10 +254,19 @@ def calibrate_target(views: list[TargetView], target: Target, image_size_px, *,
         coefs = parse_coefficients(coefficients)
         cam, poses, residuals, std = fit_opencv(X_views, px, image_size_px, coefs)
         first = (cam, residuals, std)
+        warnings = []
         for _ in range(bias_rounds if has_circles else 0):
             obs = [p - np.nan_to_num(ellipse_center_bias_px(cam, pose, target, ids=v.ids))
                    for p, pose, v in zip(px, poses, views)]
-            cam, poses, residuals, std = fit_opencv(X_views, obs, image_size_px, coefs)
+            nxt = fit_opencv(X_views, obs, image_size_px, coefs, cam)
+            if _rms_of(nxt[2]) > 1.2 * _rms_of(residuals) + 0.01:
+                # the correction is a small shift of the points: a fit that gets much worse
+                # under it is ill-conditioned (too many coefficients for these views)
+                warnings.append("the ellipse-centre bias correction made the fit worse and was "
+                                "stopped: the model is poorly determined by these images (use "
+                                "fewer coefficients or more images)")
+                break
+            cam, poses, residuals, std = nxt
         sq = np.concatenate([np.sum(r**2, axis=1) for r in residuals])
         per = [float(np.sqrt(np.mean(np.sum(r**2, axis=1)))) for r in residuals]
         unc = None
@@ -235,11 +275,12 @@ def calibrate_target(views: list[TargetView], target: Target, image_size_px, *,
             unc = {"camera": first[0].to_dict(), "rms_px": float(np.sqrt(sq0.mean())),
                    "std": first[2]}
         res = CalibrationResult(cam, float(np.sqrt(sq.mean())), per, std, poses, names,
-                                uncorrected=unc, coefficients=list(coefs))
+                                uncorrected=unc, coefficients=list(coefs), warnings=warnings)
     res.views = [{"name": v.name, "ids": v.ids, "points_px": v.points_px,
                   "residuals_px": r, "rotation_ambiguity_deg": v.rotation_ambiguity_deg}
                  for v, r in zip(views, residuals)]
     res.flagged = flag_outliers(names, residuals, res.per_image_rms_px)
+    res.warnings = list(res.warnings) + _poorly_determined(res.std, res.camera)
     res.target = target.describe()
     res.model = model
     return res

@@ -299,6 +299,8 @@ def _print_result(res, conv, fmt) -> None:
                    + (f"  FLAGGED: {flag}" if flag else ""))
     for n, why in res.skipped.items():
         typer.echo(f"  {n}: skipped ({why})")
+    for w in res.warnings:
+        typer.echo(f"warning: {w}")
     if not conv.exact:
         typer.echo(f"note: {fmt} cannot hold the {res.camera.model} model; wrote the nearest "
                    f"{conv.camera.model} camera (worst pixel error {conv.max_error_px:.4f} px)")
