@@ -134,7 +134,7 @@ def test_dm_plus_b_starts_from_the_outline_and_needs_no_corners(chamfered):
     assert "lines" not in fast.timings_ms and "lines" in full.timings_ms
     assert len(fast.corners_px) == 0 and len(full.corners_px) == 20
     assert np.array_equal(fast.pose.dof, full.pose.dof)
-    assert fast.estimate.info["start"].info["from"] == "outline"
+    assert fast.estimate.start.method == "outline"
     d = json.loads(json.dumps(fast.to_dict()))
     assert d["corners_px"] == [] and d["features"]["segmentation"] == "outline"
     # dm+ still detects its corners
@@ -159,20 +159,19 @@ def test_dm_plus_b_falls_back_to_the_corners_when_the_outline_start_fails(chamfe
     follow (a held-back worn image: corners 21 px off, the band on 9 of 40 segments): then
     ``measure`` detects the corners and starts from their pose, says so, and measures the
     pose (fails without the fall-back: no pose)."""
-    import cutterpose.pipeline as pl
+    import cutterpose.solvers.edge_band as eb
 
     pose, r = chamfered
     bad = pose.dof + np.array([4.3, -2.6, -1.2, 2.5, 0.0, -8.4])
     far = Pose.from_euler(*bad)
 
     def bent(H, camera, method="outline"):
-        return pl.PoseEstimate(method, far.R, far.t_mm, info={"from": "outline"})
+        return eb.PoseEstimate(method, far.R, far.t_mm)
 
-    monkeypatch.setattr(pl, "outline_start", bent)
+    monkeypatch.setattr(eb, "outline_start", bent)
     m = measure(r.image, CAM, HOLDER, method="dm+b", limits=LIMITS)
     assert m.pose is not None, m.quality.reason
-    assert "outline_start_failed" in m.estimate.info
-    assert "edge segments" in m.estimate.info["outline_start_failed"]
+    assert "edge segments" in m.estimate.start_failed
     assert m.features.segmentation == "field"
     err = m.pose.dof - pose.dof
     assert np.all(np.abs(err[:3]) < 0.1) and abs(err[5]) < 0.3

@@ -237,7 +237,7 @@ def test_edge_look_changes_the_fitted_look(new_holder):
     limits = QualityLimits(edge_shape="unknown")
     plain = measure(img, CAM, HOLDER, method="dm+b", limits=limits)
     calib = measure(img, CAM, HOLDER, method="dm+b", limits=limits, edge_look=cal)
-    b0, b1 = plain.estimate.info["band"], calib.estimate.info["band"]
+    b0, b1 = plain.estimate.band, calib.estimate.band
     generic = {(v.specular, v.shininess) for v in em.LOOK_VARIANTS}
     assert (b0.fit.best.look.specular, b0.fit.best.look.shininess) in generic
     assert not b0.calibrated
@@ -270,14 +270,14 @@ def test_edge_look_changes_the_fitted_look(new_holder):
     for m in (calib, plain, bare):
         assert "calibration extrapolated" not in m.quality.budget.to_dict()["parts"]
     # and the JSON says why
-    assert calib.estimate.info["band"].to_dict()["look"]["calibration_covers"] is True
-    assert far.estimate.info["band"].to_dict()["look"]["calibration_covers"] is False
-    assert plain.estimate.info["band"].to_dict()["look"]["calibration_covers"] is None
+    assert calib.estimate.band.to_dict()["look"]["calibration_covers"] is True
+    assert far.estimate.band.to_dict()["look"]["calibration_covers"] is False
+    assert plain.estimate.band.to_dict()["look"]["calibration_covers"] is None
     # the variants round the look (band_looks(variant_axes=...)) enter the edge-model term
     feats = detect_features(img, CAM, HOLDER, FeatureParams.for_camera(CAM))
-    start = plain.estimate.info["start"]
+    start = plain.estimate.start
     est = refine_features(start, feats, CAM, HOLDER, edge_look=cal.band_looks(variant_axes=2))
-    b2 = est.info["band"]
+    b2 = est.band
     varied = [lf.look for lf in b2.fit.plausible if lf.look.shape == b2.fit.best.look.shape]
     assert len(varied) >= 2
 
@@ -308,7 +308,7 @@ def test_calibrated_depth_moves_the_pose_and_enters_the_budget(new_holder):
                   for lk in (base, deep, unsure))
     assert e0 and e1 and e2
     assert np.linalg.norm(e1.t_cam_holder_mm - e0.t_cam_holder_mm) > 0.02
-    m1, m2 = (np.trace(e.info["band"].cov_parts["edge model"][3:, 3:]) for e in (e1, e2))
+    m1, m2 = (np.trace(e.band.cov_parts["edge model"][3:, 3:]) for e in (e1, e2))
     assert m2 > m1 * 1.2, (m1, m2)
     # the offset and the depth are propagated jointly: anti-correlated as a calibration finds
     # them (the segments see the pocket edge from its inside, tan(theta) < 0, so a larger
@@ -319,7 +319,7 @@ def test_calibrated_depth_moves_the_pose_and_enters_the_budget(new_holder):
     joint = with_offsets(deep, cov_mm2=tuple((k, ((a * a, -a * b), (-a * b, b * b)))
                                            for k in shapes))
     m_apart, m_joint = (np.trace(refine_features(start, feats, CAM, HOLDER, edge_look=lk)
-                                 .info["band"].cov_parts["edge model"][3:, 3:])
+                                 .band.cov_parts["edge model"][3:, 3:])
                         for lk in (apart, joint))
     assert m_joint < 0.7 * m_apart, (m_joint, m_apart)
 
@@ -474,22 +474,23 @@ def test_tracker_fits_the_calibrated_look(new_holder):
     calib = Tracker(CAM, HOLDER, "dm+b", limits=limits, edge_look=cal).update(img)
     assert plain.mode == calib.mode == "full"
     assert plain.measurement.method == calib.measurement.method == "dm+b"
-    b0 = plain.measurement.estimate.info["band"]
-    b1 = calib.measurement.estimate.info["band"]
+    b0 = plain.measurement.estimate.band
+    b1 = calib.measurement.estimate.band
     assert not b0.calibrated and b1.calibrated
     assert (b1.fit.best.look.specular, b1.fit.best.look.shininess) == (1.3, 33.0)
 
 
-def test_only_methods_that_take_a_look_get_it(new_holder):
-    """The registry says which refinement takes a calibrated look (``dm+b``); ``dm+r`` is run
-    without it rather than failing on an unexpected keyword."""
-    from cutterpose.methods import get_method
-
-    assert get_method("dm+b").takes_edge_look
-    assert not get_method("dm+r").takes_edge_look
+def test_only_methods_that_take_a_look_use_it(new_holder):
+    """A calibrated look reaches the method that fits the edge's look (``dm+b``: its band fit
+    says it is calibrated); ``dm+r``, which does not, measures the same pose with or without
+    it rather than failing on it."""
     _, img, cal, _ = new_holder
     m = measure(img, CAM, HOLDER, method="dm+r", edge_look=cal)
-    assert m.estimate.method == "dm+r"
+    m0 = measure(img, CAM, HOLDER, method="dm+r")
+    assert m.estimate.method == "dm+r" and m.pose is not None
+    assert np.array_equal(m.pose.dof, m0.pose.dof)
+    b = measure(img, CAM, HOLDER, method="dm+b", edge_look=cal)
+    assert b.estimate.band is not None and b.estimate.band.calibrated
 
 
 def test_extrapolated_calibration_part_is_its_correction(new_holder):

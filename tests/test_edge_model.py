@@ -193,7 +193,7 @@ def test_paper_chain_stays_selectable_without_edge_model():
     r = render_holder(pose, cam, HOLDER, "easy", seed=11)
     f = detect_features(r.image, cam, HOLDER)
     m = measure_features(f, cam, HOLDER, "dm", SMALL)
-    assert m.method == "dm" and "radius_fit" not in m.estimate.info
+    assert m.method == "dm" and m.estimate.radius_fit is None
     # the corners see the broken edge: a break not declared is in the budget
     assert set(m.quality.budget.parts) == {"noise", "method", "wear", "edge break"}
 

@@ -103,8 +103,6 @@ KNOWN_PRIVATE_IMPORTS = {
     ("src/cutterpose/calibration/boards.py", "cutterpose.calibration.targets._parse_grid_size"),
     ("src/cutterpose/calibration/circle_grids.py",
      "cutterpose.calibration.targets._parse_grid_size"),
-    # the method registry's table: replaced by the pose-method registry (issue 30, item 1)
-    ("src/cutterpose/cli/measure.py", "cutterpose.methods._ENTRIES"),
 }
 
 
@@ -171,3 +169,14 @@ def test_private_import_finder_sees_both_forms(tmp_path):
     found = private_imports([a], tmp_path, set(_imports()))
     assert found == {("a.py", "cutterpose.image.edges._x"), ("a.py", "cutterpose.image.edges._y"),
                      ("a.py", "cutterpose.image.edge_model._z")}
+
+
+def test_verdict_and_budget_import_no_solver():
+    """The verdict and the error budget sit below the pose methods: every method's budget lives
+    beside its method, and the verdict judges them all without knowing any of them."""
+    graph = _imports()
+    for m in ("cutterpose.verdict", "cutterpose.budget"):
+        above = sorted(d for d in graph[m] if d.startswith(("cutterpose.solvers",
+                                                             "cutterpose.methods",
+                                                             "cutterpose.pipeline")))
+        assert above == [], (m, above)

@@ -11,14 +11,13 @@ from cutterpose.geometry.holder import default_holder
 from cutterpose.geometry.pose import Pose, geodesic_deg
 from cutterpose.geometry.working_range import MotionRange, PoseOutOfRangeError
 from cutterpose.methods import get_method
+from cutterpose.solvers.dm import solve_dm, solve_dm_plus
 from cutterpose.solvers.matching import (
     PAPER_STEPS,
     TemplateLibrary,
     distance_image,
     distance_match,
     refine_continuous,
-    solve_dm,
-    solve_dm_plus,
 )
 from cutterpose.solvers.vanishing import initial_pose
 
@@ -109,7 +108,7 @@ def test_dm_plus_cannot_shrink_to_a_point():
     from cutterpose.solvers.estimate import PoseEstimate
     est = refine_continuous(PoseEstimate("dm", start.R, start.t_mm), px, CAM, HOLDER,
                             MotionRange(), slack=100.0)
-    assert len(set(est.info["assignment"])) == HOLDER.n_corners
+    assert len(set(est.assignment)) == HOLDER.n_corners
     assert est.t_cam_holder_mm[2] < 1500
 
 

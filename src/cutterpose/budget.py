@@ -1,42 +1,12 @@
-"""The verdict's error budget (issue 10, item 4): how far off the pose may be, from what, and
-whether that is within the robot's tolerance.
+"""The error budget (issue 10, item 4): how far off the pose may be, from what, and whether
+that is within the robot's tolerance.
 
-Contributions, each a covariance of the estimate (the pose's six DOFs, and the edge radius
-``r`` for ``dm+r``), summed:
-
-* ``radius``: the linearised marginal-minus-conditional above, or, when larger, the spread of
-  the pose over the radius scan's profile (another radius that fits nearly as well gives
-  another depth: :func:`radius_profile_cov`);
-* ``noise``: Gauss-Newton, ``chi2_red H^-1`` with ``H = J^T W^T W J`` (+ the radius prior), the
-  corners whitened by their noise and the edge model's uncertainty at each corner
-  (:func:`cutterpose.solvers.edge_radius.fit_pose_radius`); its pose block is the marginal over
-  ``r``, so the radius estimate's variance is in it (``radius`` reports how much: marginal minus
-  the conditional ``r``-known covariance);
-* ``model``: the edge model's photometric spread: the offsets under each plausible light and
-  material (:data:`cutterpose.image.edge_model.LOOK_VARIANTS`, and the other edge shape, fillet
-  or chamfer) minus the nominal ones, pushed
-  through the estimator's linear sensitivity ``G = H^-1 J^T W^T W`` (``b_j = G D dDelta_j``), as
-  ``sum_j p_j b_j b_j^T``, with ``p_j`` the looks' posterior weights given the fit's residual
-  (equal prior weights, nominal included with ``b = 0``; under look ``j`` the whitened residual
-  would be ``-(I - P) m_j`` plus noise, ``m_j`` the look's whitened corner shift and ``P`` the
-  projection onto the fit's columns, so ``p_j ~ exp(-|z + (I - P) m_j|^2 / (2 chi2_red))``);
-  plus the rival rise of each edge end (half the gap to it where it is at least 0.6 of the
-  edge's, per edge);
-* ``edge_variation``: the radius is one per image but varies along a worn contour: independent
-  per-edge offsets of std ``max(sigma_e, kappa r |slope_k|)``, ``sigma_e`` measured from the
-  residuals (:func:`edge_variation_mm`) and a floor of ``kappa = 0.1`` (a tenth of the radius
-  per edge; the measured part covers larger variations as far as the corners show them);
-* for methods without the edge model (``dm``, ``dm+``, PnP): ``noise`` is the 6-DOF Gauss-Newton
-  covariance of :func:`cutterpose.pipeline.pose_std`, ``method`` the step ``d`` from the pose to
-  the corners' least-squares pose (:func:`cutterpose.pipeline.fit_offset`; a pose that does not
-  minimise the residuals, as ``dm``'s search or a linear PnP, is off by it), as 1 sigma of
-  ``2 d / 3``, ``wear`` the square of the pose shift the
-  edges' measured darkening may cause (:func:`cutterpose.pipeline.edge_wear_effect`), and
-  ``edge break`` the break they cannot measure: the seen edge lies anywhere from the design edge
-  to ``b`` outside it (``b = QualityLimits.edge_break_mm``, 1.5 mm when not known), taken as
-  ``s s^T`` with ``s`` the pose shift of a uniform outward offset ``b / 3``
-  (:func:`cutterpose.pipeline.edge_break_effect`: its 3 sigma is the shift of the whole range,
-  a bound rather than a spread, since the seen edge's offset is one-sided and not corrected).
+A budget is a set of named contributions, each a (6, 6) covariance of the pose's DOFs, summed.
+Each pose method makes its own (:meth:`cutterpose.solvers.method.PoseMethod.budget`, beside the
+method): the corner methods' (``dm``, ``dm+``, PnP: :mod:`cutterpose.solvers.corner_budget`),
+``dm+r``'s (:mod:`cutterpose.solvers.radius_budget`), ``dm+b``'s
+(:mod:`cutterpose.solvers.edge_band`). This module holds what they share and imports none of
+them.
 
 The 6 x 6 pose covariance is then given in the camera frame as ``covariance_cam`` in the order
 ``(x, y, z [mm], rx, ry, rz [rad])``: the translation ``t_cam_holder`` and a small rotation about
@@ -62,18 +32,16 @@ References:
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from .geometry.pose import rotation_from_euler_deg
 
-__all__ = ["ErrorBudget", "Tolerance", "budget_from_fit", "budget_from_dof_cov",
-           "dof_to_cam_jacobian", "edge_variation_mm", "radius_profile_cov", "COVARIANCE_CAM_ORDER",
-           "KAPPA_EDGE_VARIATION"]
+__all__ = ["ErrorBudget", "Tolerance", "budget_from_dof_cov", "dof_to_cam_jacobian",
+           "COVARIANCE_CAM_ORDER"]
 
 COVARIANCE_CAM_ORDER = ("x_mm", "y_mm", "z_mm", "rx_rad", "ry_rad", "rz_rad")
-KAPPA_EDGE_VARIATION = 0.1
 
 
 @dataclass(frozen=True)
@@ -96,6 +64,8 @@ class ErrorBudget:
     grasp_point_mm : (3,) holder-frame point the position figure is for.
     position_3sigma_mm, angle_3sigma_deg : worst-direction 3-sigma figures.
     radius_mm, radius_std_mm : the edge radius and its std (NaN without the edge model).
+    residuals_px : (n, 2) the residual vectors of the method's fit (ideal px: the corners', or
+        the band's along the edge normals) that the verdict judges.
     """
 
     parts: dict
@@ -107,6 +77,7 @@ class ErrorBudget:
     radius_mm: float = math.nan
     radius_std_mm: float = math.nan
     per_part_3sigma: dict = field(default_factory=dict)
+    residuals_px: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
 
     @property
     def std_dof(self) -> np.ndarray:
@@ -178,9 +149,10 @@ def _figures(cov_cam: np.ndarray, R: np.ndarray, p: np.ndarray, k: float):
 
 
 def budget_from_dof_cov(parts: dict, dof, grasp_point_mm=None, tol: Tolerance = Tolerance(),
-                        radius_mm: float = math.nan, radius_std_mm: float = math.nan
-                        ) -> ErrorBudget:
-    """An :class:`ErrorBudget` from named (6, 6) DOF covariances at the pose ``dof``."""
+                        radius_mm: float = math.nan, radius_std_mm: float = math.nan,
+                        residuals_px=None) -> ErrorBudget:
+    """An :class:`ErrorBudget` from named (6, 6) DOF covariances at the pose ``dof``, with the
+    fit's ``residuals_px`` ((n, 2) ideal px) the verdict judges."""
     p = np.zeros(3) if grasp_point_mm is None else np.asarray(grasp_point_mm, float).reshape(3)
     dof = np.asarray(dof, float)
     total = sum(parts.values()) if parts else np.zeros((6, 6))
@@ -190,126 +162,5 @@ def budget_from_dof_cov(parts: dict, dof, grasp_point_mm=None, tol: Tolerance = 
         cam = A @ total @ A.T
         per = {k: _figures(A @ c @ A.T, R, p, tol.k_sigma) for k, c in parts.items()}
     pos, ang = _figures(cam, R, p, tol.k_sigma)
-    return ErrorBudget(parts, total, cam, p, pos, ang, radius_mm, radius_std_mm, per)
-
-
-def edge_variation_mm(fit, D_edge: np.ndarray) -> float:
-    """The std (mm) of independent per-edge offsets that the fit's residuals show.
-
-    With ``Q = I - J (J^T J)^-1 J^T`` (the fit's residual projector, 7 columns), the residual is
-    ``Q (D e + n)``: ``e`` per-edge offsets (std ``sigma_e``), ``n`` corner noise (std
-    ``sigma_c``). Split it on ``U = range(Q D)``: the part off ``U`` holds noise only,
-    ``sigma_c^2 = |r_perp|^2 / tr(Q - P_U)``; the part on ``U`` gives
-    ``sigma_e^2 = (|r_U|^2 - sigma_c^2 tr(P_U)) / tr(Q D D^T Q)`` (method of moments; the part
-    of ``D e`` the pose and radius absorb is extrapolated from the visible part).
-    """
-    keep = np.repeat(fit.weights > 0, 2)        # corners not seen carry no residual
-    J = (fit.jacobian * np.repeat(np.sqrt(fit.weights), 2)[:, None])[keep]
-    r = (fit.residuals_px.ravel() * np.repeat(np.sqrt(fit.weights), 2))[keep]
-    Dw = (D_edge * np.repeat(np.sqrt(fit.weights), 2)[:, None])[keep]
-    Qj, _ = np.linalg.qr(J)
-    Q = np.eye(len(r)) - Qj @ Qj.T
-    QD = Q @ Dw
-    U, sv, _ = np.linalg.svd(QD, full_matrices=False)
-    U = U[:, sv > 1e-9 * sv.max()]
-    rU = U.T @ r
-    r_perp2 = float(r @ Q @ r - rU @ rU)
-    dof_perp = float(np.trace(Q)) - U.shape[1]
-    if dof_perp < 1:
-        return 0.0
-    s_c2 = r_perp2 / dof_perp
-    num = float(rU @ rU) - s_c2 * U.shape[1]
-    return float(np.sqrt(max(num, 0.0) / float(np.sum(QD * QD))))
-
-
-def radius_profile_cov(fit) -> np.ndarray:
-    """(6, 6) spread of the pose over the radius scan's profile (:class:`RadiusFit`
-    ``profile``), weighted by ``exp(-(cost - cost_min) / (2 s_eff^2))`` with
-    ``s_eff^2 = cost_min / (2N - 7)``, about the fitted pose: the non-linear counterpart of the
-    radius term, for when another radius fits nearly as well with another depth."""
-    if not fit.profile:
-        return np.zeros((6, 6))
-    cost = np.array([c for _, c, _ in fit.profile])
-    d = np.array([x for _, _, x in fit.profile]) - fit.dof
-    s_eff2 = max(cost.min() / max(2 * int(np.count_nonzero(fit.weights)) - 7, 1), 1e-12)
-    w = np.exp(-0.5 * (cost - cost.min()) / s_eff2)
-    w /= w.sum()
-    return (d * w[:, None]).T @ d
-
-
-def budget_from_fit(fit, camera, holder, grasp_point_mm=None, tol: Tolerance = Tolerance(),
-                    kappa: float = KAPPA_EDGE_VARIATION) -> ErrorBudget:
-    """The budget of a ``dm+r`` fit (:class:`cutterpose.solvers.edge_radius.RadiusFit`)."""
-    from .image.edge_model import LOOK_VARIANTS
-    from .solvers.edge_radius import model_offset_spread, per_edge_jacobian
-
-    n = len(fit.residuals_px)
-    Ww = fit.whitening * np.sqrt(fit.weights)[:, None, None]                 # (N, 2, 2)
-    Jw = np.einsum("nij,njk->nik", Ww, fit.jacobian.reshape(n, 2, 7)).reshape(-1, 7)
-    z = np.einsum("nij,nj->ni", Ww, fit.residuals_px).ravel()
-    chi2 = float(z @ z) / max(2 * int(np.count_nonzero(fit.weights)) - 7, 1)
-    try:
-        Hinv = np.linalg.inv(fit.info)
-    except np.linalg.LinAlgError:
-        inf = np.full((6, 6), np.inf)
-        return budget_from_dof_cov({"noise": inf}, fit.dof, grasp_point_mm, tol)
-    C_noise = chi2 * Hinv
-    # sensitivity of the estimate to the raw corner pixels: dtheta = G dpx
-    Wbig = np.zeros((2 * n, 2 * n))
-    for i in range(n):
-        Wbig[2 * i:2 * i + 2, 2 * i:2 * i + 2] = Ww[i]
-    G = Hinv @ Jw.T @ Wbig                                                  # (7, 2N)
-    D_edge = per_edge_jacobian(fit, camera, holder)                         # (2N, N)
-    # per edge end: corner i's ends are edges i-1 and i
-    # the plausible looks for the fitted shape, and the other shape at the nominal look
-    shape = fit.table.look.shape
-    looks = tuple(replace(v, shape=shape) for v in LOOK_VARIANTS) + (
-        replace(fit.table.look, shape="chamfer" if shape == "round" else "round"),)
-    deltas, sig_end = model_offset_spread(fit.table, fit.radius_mm, camera, holder, fit.dof,
-                                          looks)
-    idx_prev = (np.arange(n) - 1) % n
-
-    def end_px(d_end):  # (N, 2) offsets per edge end -> (2N,) pixel shifts
-        out = np.zeros((n, 2))
-        Dr = D_edge.reshape(n, 2, n)
-        out += Dr[np.arange(n), :, idx_prev] * d_end[:, 0:1]
-        out += Dr[np.arange(n), :, np.arange(n)] * d_end[:, 1:2]
-        return out.ravel()
-
-    B = np.array([G @ end_px(d) for d in deltas]) if len(deltas) else np.zeros((0, 7))
-    # the data weigh the looks: under look j the fit's residual would be -(I - P) m_j plus
-    # noise (m_j the look's whitened corner shift, P the projection onto the fit's columns)
-    P = Jw @ Hinv @ Jw.T
-    zf = z
-    chi = [float(zf @ zf)]
-    for d in deltas:
-        m = (Wbig @ end_px(d))
-        e = zf + m - P @ m
-        chi.append(float(e @ e))
-    chi = np.array(chi) / max(chi2, 1.0)
-    post = np.exp(-0.5 * (chi - chi.min()))
-    post /= post.sum()
-    C_model = (B * post[1:, None]).T @ B if len(B) else np.zeros((7, 7))
-    # rival rises: per edge, the mean of its two ends' extra uncertainty (the whole line jumps)
-    rival_end = np.sqrt(np.clip(sig_end ** 2 - np.mean(deltas ** 2, axis=0), 0, None)) \
-        if len(deltas) else sig_end
-    rival_edge = 0.5 * (rival_end[:, 1] + rival_end[(np.arange(n) + 1) % n, 0])
-    GD = G @ D_edge
-    C_rival = GD @ np.diag(rival_edge ** 2) @ GD.T
-    sig_e = edge_variation_mm(fit, D_edge)
-    slope = fit.table(fit.radius_mm)[1]
-    slope_edge = 0.5 * (slope[:, 1] + slope[(np.arange(n) + 1) % n, 0])
-    floor = kappa * fit.radius_mm * np.abs(slope_edge)
-    var_edge = np.maximum(floor, sig_e) ** 2
-    C_var = GD @ np.diag(var_edge) @ GD.T
-    H66 = fit.info[:6, :6]
-    C_known = chi2 * np.linalg.inv(H66)
-    C_radius = C_noise[:6, :6] - C_known
-    C_valleys = radius_profile_cov(fit)
-    if np.trace(C_valleys) > np.trace(C_radius):
-        C_radius = C_valleys
-    parts = {"noise": C_known, "radius": C_radius,
-             "model": (C_model + C_rival)[:6, :6], "edge_variation": C_var[:6, :6]}
-    r_var = C_noise[6, 6] + C_model[6, 6] + C_rival[6, 6] + C_var[6, 6]
-    return budget_from_dof_cov(parts, fit.dof, grasp_point_mm, tol, fit.radius_mm,
-                               math.sqrt(max(r_var, 0.0)))
+    r = np.zeros((0, 2)) if residuals_px is None else np.asarray(residuals_px, float)
+    return ErrorBudget(parts, total, cam, p, pos, ang, radius_mm, radius_std_mm, per, r)

@@ -1,37 +1,28 @@
 """From one image to a checked pose: :func:`measure`.
 
-Image processing (:mod:`cutterpose.image.features`, paper section 2.1) gives the 20 corners in
-contour order; a pose method (:mod:`cutterpose.methods`) turns them into a pose; the residuals
-give the pose's per-DOF standard deviations and a quality verdict that refuses, with the reason,
-a pose that should not be used.
+The measurement reads
 
-Correspondences for the PnP methods ("contour order"): the contour gives the corners in order up
-to a cyclic shift and a direction. The direction is fixed by the sign of the polygon's area
-(the holder is always seen from its front, so the image polygon turns the same way as the model
-projected at the nominal pose), the shift by comparing the corner-to-corner vectors, normalised
-by the perimeter, with those of the model at the nominal pose: within the working range
-(+-10 deg, holder X axis along the image rows) this separates the holder's 180 deg symmetric
-assignments, and the edge lengths separate the others. The correspondence-free methods
-(``initial``, ``dm``, ``dm+``) get the contour order as it is.
+    features -> method.estimate -> method.budget -> verdict
 
-Per-DOF standard deviation (Gauss-Newton covariance at the estimate): with ``r`` the 40 residuals
-(detected minus projected ideal pixels, corners matched by the best cyclic assignment) and ``J``
-their Jacobian with respect to ``(alpha, beta, gamma, X, Y, Z)``,
-
-    s^2 = |r|^2 / (40 - 6),        Cov = s^2 (J^T J)^-1,        std = sqrt(diag Cov).
+Image processing (:mod:`cutterpose.image.features`, paper section 2.1) finds the holder's
+features (the pocket outline, the edge lines, the corners); the pose method
+(:class:`~cutterpose.solvers.method.PoseMethod`, by name from :mod:`cutterpose.methods`) turns
+them into a pose (:meth:`~cutterpose.solvers.method.PoseMethod.estimate`) and says how far off
+it may be (:meth:`~cutterpose.solvers.method.PoseMethod.budget`: noise, edge model, edge break
+... propagated to the position of a grasp point and to the rotation); the verdict
+(:func:`cutterpose.verdict.verdict`, then the method's own
+:meth:`~cutterpose.solvers.method.PoseMethod.review`) refuses, with the reason, a pose that
+should not be used: residuals, working range, ambiguity, std, and 3-sigma figures above the
+tolerance (1 mm, 0.3 deg). The camera-frame 6 x 6 covariance is
+``Measurement.covariance_cam`` (order :data:`cutterpose.budget.COVARIANCE_CAM_ORDER`).
 
 The default method is ``dm+b`` (:mod:`cutterpose.solvers.edge_band`): the pocket outline's pose
 for the start on the field chain (no corners needed; the corners' ``dm+`` pose when the band
 finds nothing from there, and on the paper's chain), then the band across every broken pocket
-edge fitted with the edge model
-(:mod:`cutterpose.image.edge_band`), so that the pose is that of the design edge on field
-holders. ``dm+r`` (:mod:`cutterpose.solvers.edge_radius`) fits one radius from the corners
-alone. The verdict is an error budget (:mod:`cutterpose.budget`): noise, edge model and model
-floor for ``dm+b``; noise, radius, edge model and edge variation for ``dm+r`` (the std above,
-the edge-wear shift and the edge break they cannot measure for the other methods),
-propagated to the position of a grasp point and to the rotation; a pose is refused when its
-3-sigma figures exceed the tolerance (1 mm, 0.3 deg), with the reason. The camera-frame 6 x 6
-covariance is ``Measurement.covariance_cam`` (order :data:`cutterpose.budget.COVARIANCE_CAM_ORDER`).
+edge fitted with the edge model (:mod:`cutterpose.image.edge_band`), so that the pose is that of
+the design edge on field holders. ``dm+r`` (:mod:`cutterpose.solvers.radius_budget`) fits one
+radius from the corners alone. The corner methods (``dm``, ``dm+``, PnP) see the broken edge,
+not the design edge, and their budget carries the break (:mod:`cutterpose.solvers.corners`).
 
 Convention:
     Pose as in :mod:`cutterpose.geometry.pose` (holder in camera frame, mm, Z-Y-X Euler angles in
@@ -50,93 +41,42 @@ from pathlib import Path
 
 import numpy as np
 
-from .budget import ErrorBudget, Tolerance, budget_from_dof_cov, budget_from_fit
 from .errors import CutterposeError, FeatureError, ImageError, InputError
 from .frames import load_frame
 from .geometry.camera import Camera, default_camera
 from .geometry.holder import Holder, default_holder
-from .geometry.pose import (
-    Pose,
-    pixel_jacobian,
-    pose_from_plane_homography,
-    rotation_from_euler_deg,
-    wrap_deg,
-)
-from .geometry.working_range import MotionRange
+from .geometry.pose import Pose, wrap_deg
 from .image import FeatureParams, Features, detect_features
 from .methods import get_method
+from .solvers.corners import (
+    ambiguity_ratio,
+    edge_break_effect,
+    edge_wear_effect,
+    fit_offset,
+    order_for_model,
+    pose_std,
+    worst_line_residual,
+)
+from .solvers.edge_band import band_budget, band_verdict, outline_start
 from .solvers.estimate import PoseEstimate
+from .solvers.method import MethodContext, PoseMethod
+from .verdict import (
+    DOF_NAMES,
+    EDGE_SHAPE_FITS,
+    EDGE_SHAPES,
+    NOMINAL_DISTANCE_MM,
+    UNKNOWN_EDGE_BREAK_MM,
+    Quality,
+    QualityLimits,
+    verdict,
+)
 
-__all__ = ["QualityLimits", "Quality", "Measurement", "measure", "measure_features",
+__all__ = ["QualityLimits", "Quality", "Measurement", "measure", "measure_features", "judge",
            "order_for_model", "pose_std", "demo", "DOF_NAMES", "edge_wear_effect",
            "band_budget", "band_verdict", "edge_break_effect", "UNKNOWN_EDGE_BREAK_MM",
-           "fit_offset", "NOMINAL_DISTANCE_MM", "station_center_dof", "station_params"]
-
-#: the paper's measuring station: the camera 600 mm from the holder's top face
-NOMINAL_DISTANCE_MM = 600.0
-
-
-#: the pocket edge's break shapes a holder's drawing may give (QualityLimits.edge_shape)
-EDGE_SHAPES = ("round", "chamfer", "unknown")
-#: the shapes the band / radius fit tries for each of them
-EDGE_SHAPE_FITS = {"unknown": ("round", "chamfer"), "round": ("round",), "chamfer": ("chamfer",)}
-#: the pocket edge's largest break (mm) the corner methods' verdict assumes when the holder's is
-#: not given (``QualityLimits.edge_break_mm = None``): a new holder's machined edge break is
-#: 0.5-1.5 mm (issue 10), and a worn one's more (the darkening indicator's ``wear`` part)
-UNKNOWN_EDGE_BREAK_MM = 1.5
-
-DOF_NAMES = ("alpha_deg", "beta_deg", "gamma_deg", "X_mm", "Y_mm", "Z_mm")
-
-
-@dataclass(frozen=True)
-class QualityLimits:
-    """When :func:`measure` refuses a pose.
-
-    The working range is the real rig's (paper section 3.2): +-10 deg and +-20 mm around the
-    nominal pose, accepted with a tolerance.
-    """
-
-    max_rms_px: float = 1.5            #: RMS corner residual (ideal px)
-    max_corner_residual_px: float = 4.0
-    max_ambiguity_ratio: float = 0.8   #: best / second-best candidate error
-    range_center_dof: tuple = (0.0, 0.0, 0.0, 0.0, 0.0, NOMINAL_DISTANCE_MM)
-    range_half_width_dof: tuple = (10.0, 10.0, 10.0, 20.0, 20.0, 20.0)
-    range_tolerance_dof: tuple = (2.0, 2.0, 2.0, 5.0, 5.0, 5.0)
-    max_std_dof: tuple = (0.5, 0.5, 0.5, 2.0, 2.0, 2.0)
-    #: unused since the error budget (kept for callers that set it)
-    max_edge_bias_dof: tuple = (0.2, 0.2, 0.2, 0.5, 0.5, 0.5)
-    #: the error budget's tolerance (3 sigma: 1 mm at the grasp point, 0.3 deg)
-    tolerance: Tolerance = Tolerance()
-    #: the point (holder frame, mm) whose position the budget checks: the origin, the centre of
-    #: the pocket's top plane (a holder file's grasp frame may be given instead)
-    grasp_point_mm: tuple = (0.0, 0.0, 0.0)
-    #: the pocket edge's break as the holder's drawing gives it: "round" or "chamfer" (only that
-    #: shape is fitted), or "unknown" (default: both; ``dm+b`` tells them apart from the band's
-    #: profile; ``dm+r``, from the corners alone, cannot, and its budget then carries a
-    #: chamfer's unseen depth, refusing nearly every pose: docs/RESULTS.md section 11)
-    edge_shape: str = "unknown"
-    #: the largest break (mm, fillet radius or chamfer leg) the pocket edge may have, for the
-    #: methods that see only the edge's image, not the design edge (``dm``, ``dm+``, PnP): their
-    #: budget carries the pose shift of the seen edge lying anywhere between the design edge and
-    #: this far outside it (:func:`edge_break_effect`). ``None``: not known, 1.5 mm
-    #: (:data:`UNKNOWN_EDGE_BREAK_MM`); ``0``: a sharp edge (a lab holder, the analytic
-    #: renderer's default). ``dm+b`` and ``dm+r`` measure the break and ignore it.
-    edge_break_mm: float | None = None
-
-    def __post_init__(self):
-        if self.edge_shape not in EDGE_SHAPES:
-            raise InputError(f"edge_shape must be one of {', '.join(EDGE_SHAPES)}, got "
-                             f"{self.edge_shape!r}")
-        b = self.edge_break_mm
-        if b is not None and (isinstance(b, bool) or not isinstance(b, numbers.Real)
-                              or not 0 <= b < math.inf):
-            raise InputError(f"edge_break_mm must be a finite number >= 0 or None, got {b!r}")
-
-    @property
-    def assumed_edge_break_mm(self) -> float:
-        """The break the corner methods' budget carries (:attr:`edge_break_mm` or, not given,
-        :data:`UNKNOWN_EDGE_BREAK_MM`)."""
-        return UNKNOWN_EDGE_BREAK_MM if self.edge_break_mm is None else float(self.edge_break_mm)
+           "fit_offset", "NOMINAL_DISTANCE_MM", "station_center_dof", "station_params",
+           "ambiguity_ratio", "worst_line_residual", "outline_start", "corner_residual_px",
+           "EDGE_SHAPES", "EDGE_SHAPE_FITS", "PoseEstimate"]
 
 
 def _distance(distance_mm) -> float:
@@ -161,29 +101,6 @@ def station_params(camera: Camera, chain: str = "field",
     if distance_mm is None:
         return FeatureParams.for_camera(camera, chain=chain)
     return FeatureParams.for_camera(camera, chain=chain, roi_depths_mm=(_distance(distance_mm),))
-
-
-@dataclass
-class Quality:
-    """The verdict: ``ok`` or the reason for refusing."""
-
-    ok: bool
-    reason: str = ""
-    rms_px: float = math.nan
-    ambiguity_ratio: float = math.nan
-    #: (6,) pose shift if every edge moved inwards by its possible wear offset (deg, mm)
-    edge_bias_dof: np.ndarray | None = None
-    edge_offset_px: float = math.nan   #: median possible outward offset of the edges
-    note: str = ""                     #: a warning that does not refuse the pose
-    budget: ErrorBudget | None = None  #: the error budget (None without a pose)
-
-    def to_dict(self) -> dict:
-        return {"ok": self.ok, "reason": self.reason, "rms_residual_px": _f(self.rms_px),
-                "ambiguity_ratio": _f(self.ambiguity_ratio), "note": self.note,
-                "edge_offset_px": _f(self.edge_offset_px),
-                "edge_bias": None if self.edge_bias_dof is None else
-                {k: _f(v) for k, v in zip(DOF_NAMES, self.edge_bias_dof)},
-                "budget": None if self.budget is None else self.budget.to_dict()}
 
 
 @dataclass
@@ -238,7 +155,7 @@ class Measurement:
     @property
     def edge_band(self):
         """``dm+b``'s band fit (:class:`~cutterpose.solvers.edge_band.BandPose`), else None."""
-        return None if self.estimate is None else self.estimate.info.get("band")
+        return None if self.estimate is None else self.estimate.band
 
     def pose_lines(self) -> list[str]:
         """The pose with its std and the residual as three short lines (CLI and overlay)."""
@@ -291,483 +208,68 @@ def _f(x):
     return None if x is None or not math.isfinite(float(x)) else float(x)
 
 
-# ------------------------------------------------------------------------------------------
-def order_for_model(corners_px: np.ndarray, camera: Camera, holder: Holder) -> np.ndarray:
-    """Reorder corners from contour order (unknown start and direction) to ``holder.json``
-    order, from the image alone (module doc).
-
-    Returns
-    -------
-    (N, 2) the same corners, ``out[i]`` the image of model corner ``i``.
-    """
-    c = np.asarray(corners_px, float)
-    nominal = camera.project(Pose.nominal().apply(holder.points_holder_mm))
-
-    def area(p):
-        return np.dot(p[:, 0], np.roll(p[:, 1], -1)) - np.dot(np.roll(p[:, 0], -1), p[:, 1])
-
-    if np.sign(area(c)) != np.sign(area(nominal)):
-        c = c[::-1]
-    e_det = np.roll(c, -1, axis=0) - c
-    e_nom = np.roll(nominal, -1, axis=0) - nominal
-    e_det = e_det / np.linalg.norm(e_det, axis=1).sum()
-    e_nom = e_nom / np.linalg.norm(e_nom, axis=1).sum()
-    n = len(c)
-    cost = [np.sum((np.roll(e_det, -k, axis=0) - e_nom) ** 2) for k in range(n)]
-    return np.roll(c, -int(np.argmin(cost)), axis=0)
-
-
-def _match_to_projection(ideal: np.ndarray, proj: np.ndarray,
-                         order: str = "contour") -> np.ndarray:
-    """Detected ideal corners reordered (cyclic shift and direction) to best fit ``proj``.
-    In ``"holder"`` order (field chain: known correspondences, NaN rows for the corners not
-    seen) they are returned as they are."""
-    if order == "holder":
-        return np.asarray(ideal, float)
-    best, best_cost = ideal, np.inf
-    for seq in (ideal, ideal[::-1]):
-        for k in range(len(seq)):
-            cand = np.roll(seq, -k, axis=0)
-            cost = np.sum((cand - proj) ** 2)
-            if cost < best_cost:
-                best, best_cost = cand, cost
-    return best
-
-
-def _project_ideal(dof: np.ndarray, camera: Camera, holder: Holder) -> np.ndarray:
-    R = rotation_from_euler_deg(*dof[:3])
-    X = holder.points_holder_mm @ R.T + dof[3:]
-    x = X[:, :2] / X[:, 2:3]
-    K = camera.K
-    return x @ K[:2, :2].T + K[:2, 2]
-
-
-def _jacobian(pose: Pose, camera: Camera, holder: Holder) -> np.ndarray:
-    """(2N, 6) Jacobian of the ideal pixels w.r.t. the DOFs (analytic, :func:`pixel_jacobian`)."""
-    return pixel_jacobian(pose.R, pose.t_mm, holder.points_holder_mm, camera.K)[0]
-
-
-def edge_wear_effect(pose: Pose, features: Features, camera: Camera, holder: Holder
-                     ) -> tuple[np.ndarray, float]:
-    """Pose shift (6,) if every line moved inwards by the median of the lines' possible wear
-    offsets (``features.edge_offset_px``), linearised at ``pose``; and that offset (px).
-
-    The residuals cannot show this: a uniform offset of the edges is close to a change of scale
-    (depth), so the shift is a systematic error the residual-based std misses.
-    """
-    off = features.edge_offset_px
-    if off is None or features.inward_ideal is None or not np.any(np.isfinite(off)):
-        return np.zeros(6), 0.0
-    # wear acts on the whole outline: the median offset, moved uniformly (one line darkened by
-    # an occluder or a stain beside it is not wear, and the corner checks see local defects)
-    off = np.full(len(off), float(np.nanmedian(off)))
-    from .image.edges import intersect_consecutive
-
-    L = np.array(features.lines_ideal, float)
-    # moving the line by off along the inward normal n: c' = c - off (a, b) . n
-    L[:, 2] -= off * (L[:, :2] * features.inward_ideal).sum(axis=1)
-    moved = intersect_consecutive(L)
-    if features.order == "holder":  # corner i: lines i - 1 and i (NaN where not seen)
-        moved = np.roll(moved, 1, axis=0)
-    elif not np.all(np.isfinite(moved)):
-        return np.full(6, np.nan), float(np.median(off))
-    dof = pose.dof
-    proj = _project_ideal(dof, camera, holder)
-    J = _jacobian(pose, camera, holder)
-    a = _match_to_projection(np.asarray(features.corners_ideal_px, float), proj, features.order)
-    b = _match_to_projection(moved, proj, features.order)
-    seen = np.repeat(np.isfinite(a).all(axis=1) & np.isfinite(b).all(axis=1), 2)
-    shift = np.linalg.lstsq(J[seen], (b - a).ravel()[seen], rcond=None)[0]
-    return np.abs(shift), float(np.median(off))
-
-
-def edge_break_effect(pose: Pose, camera: Camera, holder: Holder, seen: np.ndarray,
-                      offset_mm: float, J: np.ndarray | None = None) -> np.ndarray:
-    """Signed pose shift (6,: deg, mm) of a corner method's fit when every pocket edge is seen
-    ``offset_mm`` outside the design edge, linearised at ``pose`` over the ``seen`` corners.
-
-    A broken edge (fillet or chamfer of size ``b``) images its intensity step somewhere
-    between the design edge and the break's line on the face, ``b`` outside it, depending on
-    the light and the view (issue 10): the corners of the seen lines are the design corners
-    moved by ``offset (o_(i-1) + o_i)`` (:func:`cutterpose.image.edge_model.model_corners_mm`).
-    A uniform offset is nearly a change of scale: at 600 mm, 1 mm moves the depth by ~4.5 mm,
-    and at a 10 deg tilt the tilt by ~0.7 deg (``docs/RESULTS.md``, section 11). ``J``: the
-    (2N, 6) :func:`_jacobian` at ``pose`` when already computed.
-    """
-    from .image.edge_model import model_corners_mm
-
-    dof = pose.dof
-    seen = np.asarray(seen, bool)
-    o_edge = holder.edge_normals
-    outward = np.stack([np.roll(o_edge, 1, axis=0), o_edge], axis=1)
-    moved = model_corners_mm(holder, np.full((holder.n_corners, 2), float(offset_mm)), outward)
-    X = moved @ pose.R.T + pose.t_mm
-    b = X[:, :2] / X[:, 2:3] @ camera.K[:2, :2].T + camera.K[:2, 2]
-    a = _project_ideal(dof, camera, holder)
-    J = _jacobian(pose, camera, holder) if J is None else J
-    rows = np.repeat(seen, 2)
-    return np.linalg.lstsq(J[rows], (b - a).ravel()[rows], rcond=None)[0]
-
-
-def _corner_fit(pose: Pose, corners_ideal_px: np.ndarray, camera: Camera, holder: Holder,
-                order: str = "contour") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The corners against the model at ``pose``: which are seen (N,), the (2N, 6)
-    :func:`_jacobian` of all of them, and the seen ones' residuals (n, 2: detected minus
-    projected ideal px, model order)."""
-    proj = _project_ideal(pose.dof, camera, holder)
-    det = _match_to_projection(np.asarray(corners_ideal_px, float), proj, order)
-    seen = np.isfinite(det).all(axis=1)
-    return seen, _jacobian(pose, camera, holder), (det - proj)[seen]
-
-
-def _least_squares_step(J_seen: np.ndarray, r: np.ndarray) -> np.ndarray:
-    """(6,) Gauss-Newton step ``(J^T J)^-1 J^T r`` (NaN with fewer than 4 corners)."""
-    if len(r) < 4:
-        return np.full(6, np.nan)
-    return np.linalg.lstsq(J_seen, r.ravel(), rcond=None)[0]
-
-
-def fit_offset(pose: Pose, corners_ideal_px: np.ndarray, camera: Camera, holder: Holder,
-               order: str = "contour") -> np.ndarray:
-    """(6,) DOF step (deg, mm) from ``pose`` to the least-squares pose of the seen corners: one
-    Gauss-Newton step, ``(J^T J)^-1 J^T r`` with ``r`` the residuals (detected minus
-    projected ideal px). Near zero for a pose that minimises them (``dm+``, PnP + LM); NaN
-    with fewer than 4 corners."""
-    seen, J, r = _corner_fit(pose, corners_ideal_px, camera, holder, order)
-    return _least_squares_step(J[np.repeat(seen, 2)], r)
-
-
-def _noise_cov(J_seen: np.ndarray, r: np.ndarray) -> np.ndarray:
-    """(6, 6) ``s^2 (J^T J)^-1`` (module doc), NaN when ``J`` is singular."""
-    s2 = float(np.sum(r ** 2)) / max(r.size - 6, 1)
-    try:
-        return s2 * np.linalg.inv(J_seen.T @ J_seen)
-    except np.linalg.LinAlgError:
-        return np.full((6, 6), np.nan)
-
-
-def _pose_cov(pose: Pose, corners_ideal_px: np.ndarray, camera: Camera, holder: Holder,
-              order: str = "contour") -> tuple[np.ndarray, np.ndarray]:
-    """(6, 6) ``s^2 (J^T J)^-1`` over the seen corners (module doc) and the residuals."""
-    seen, J, r = _corner_fit(pose, corners_ideal_px, camera, holder, order)
-    return _noise_cov(J[np.repeat(seen, 2)], r), r
-
-
-def pose_std(pose: Pose, corners_ideal_px: np.ndarray, camera: Camera, holder: Holder,
-             order: str = "contour") -> tuple[np.ndarray, np.ndarray]:
-    """Per-DOF standard deviations from the residuals, ``s^2 (J^T J)^-1`` (module doc).
-
-    ``order="holder"``: corners in model order, NaN rows (not seen) left out.
-
-    Returns
-    -------
-    std : (6,) deg and mm.
-    residuals : (n, 2) detected minus projected ideal pixels, model order (seen corners).
-    """
-    cov, r = _pose_cov(pose, corners_ideal_px, camera, holder, order)
-    return np.sqrt(np.clip(np.diag(cov), 0, None)), r
-
-
-def _solve(method: str, corners_px: np.ndarray, camera: Camera, holder: Holder,
-           limits: QualityLimits, order: str = "contour", H=None) -> PoseEstimate:
-    """``corners_px``: all 20 in contour order, or (``order="holder"``, field chain) 20 in model
-    order with NaN rows for the corners not seen: PnP methods get the seen ones with their
-    model points; the range-searching methods (:class:`~cutterpose.methods.Method`,
-    ``searches_range``: ``dm``, ``dm+``, ``dm-paper``) the seen ones, unordered, with the
-    rig's working range and, on the field chain, the pose of the outline homography ``H`` as
-    their start."""
-    m = get_method(method)
-    if m.base is not None:
-        raise InputError(f"{method} refines {m.base}'s pose with more than the corners: "
-                         "use measure_features")
-    corners_px = np.asarray(corners_px, float)
-    seen = np.isfinite(corners_px).all(axis=1)
-    if m.searches_range:
-        rng = MotionRange(center_dof=limits.range_center_dof,
-                          half_width_dof=limits.range_half_width_dof)
-        field = order == "holder"
-        start = pose_from_plane_homography(H, camera.K) if field and H is not None else None
-        return m.solve(corners_px[seen] if field else corners_px, camera, holder,
-                       motion_range=rng, start=start, partial=field and not seen.all(),
-                       close_start_rms_px=limits.max_rms_px if field else None)
-    if order == "holder" and not seen.all():
-        if m.needs_correspondences:
-            return m.solve(corners_px[seen], camera, holder.points_holder_mm[seen])
-        return PoseEstimate.failure(method, f"needs all {holder.n_corners} corners, "
-                                    f"{int(seen.sum())} seen")
-    if m.needs_correspondences:
-        if order == "holder":
-            return m.solve(corners_px, camera, holder)
-        return m.solve(order_for_model(corners_px, camera, holder), camera, holder)
-    return m.solve(corners_px, camera, holder)
-
-
-def outline_start(H_ideal_holder, camera: Camera, method: str = "outline"
-                  ) -> PoseEstimate | None:
-    """The pose of the pocket outline's homography (holder plane -> ideal px; Zhang's
-    decomposition, :func:`~cutterpose.geometry.pose.pose_from_plane_homography`) as a start,
-    or None when it is degenerate. Its residual is NaN: no corners were fitted."""
-    rt = pose_from_plane_homography(H_ideal_holder, camera.K)
-    if rt is None:
-        return None
-    return PoseEstimate(method, rt[0], np.asarray(rt[1], float), info={"from": "outline"})
-
-
 def corner_residual_px(features: Features, camera: Camera, holder: Holder,
                        limits: QualityLimits | None = None) -> float:
     """RMS residual (ideal px) of ``dm+``'s pose fitted to the detected corners: how far the
     innermost rise the corners follow lies off the rigid model (NaN without a pose). The
     tracker holds its tracked edges to it."""
-    if not _has_corners(features):
+    if not np.isfinite(np.asarray(features.corners_px, float)).all(axis=1).any():
         return math.nan
-    est = _solve("dm+", features.corners_px, camera, holder, limits or QualityLimits(),
-                 features.order, features.H_ideal_holder)
+    est = get_method("dm+").estimate(features, camera, holder,
+                                     MethodContext(limits or QualityLimits()))
     return float(est.residual_px) if est else math.nan
 
 
-def _refine(method: str, features: Features, camera: Camera, holder: Holder,
-            limits: QualityLimits, edge_look=None, outline_failed: str | None = None
-            ) -> PoseEstimate:
-    """A method that refines its base method's pose with more than the corners
-    (``Method.refine``: ``dm+r`` the edge radius, ``dm+b`` the bands in the image). A
-    calibrated ``edge_look`` goes to a refinement that takes one (``dm+b``); the others ignore
-    it.
-
-    A method that starts from the outline (``Method.start_from_outline``, field chain) falls
-    back to the corners' pose when the refinement from the outline gives no pose: the outline's
-    homography can be bent by what lies on a worn edge (a held-back worn image: its corners up
-    to 21 px off, the band found on 9 of 40 segments). Without corners in ``features`` the
-    failure is returned; :func:`measure` then detects them and calls again with
-    ``outline_failed`` (the first attempt's reason, so that it is not repeated)."""
-    m = get_method(method)
-    kw = {}
-    if edge_look is not None and m.takes_edge_look:
-        kw["edge_look"] = edge_look
-    shapes = EDGE_SHAPE_FITS[limits.edge_shape]
-    if (outline_failed is None and m.start_from_outline and features.order == "holder"
-            and features.H_ideal_holder is not None):
-        outline = outline_start(features.H_ideal_holder, camera)
-        if outline is not None:
-            est = m.refine(outline, features, camera, holder, shapes, **kw)
-            if est or not _has_corners(features):
-                return est
-            outline_failed = est.reason
-    start = _solve(m.base, features.corners_px, camera, holder, limits, features.order,
-                   features.H_ideal_holder)
-    est = m.refine(start, features, camera, holder, shapes, **kw)
-    if outline_failed is not None:
-        est.info["outline_start_failed"] = outline_failed
-    return est
+def judge(method: PoseMethod, estimate: PoseEstimate, features: Features, camera: Camera,
+          holder: Holder, limits: QualityLimits) -> Quality:
+    """The verdict on ``method``'s ``estimate``: its budget
+    (:meth:`~cutterpose.solvers.method.PoseMethod.budget`), the common verdict
+    (:func:`cutterpose.verdict.verdict`, with the ambiguity of its candidates and the edges'
+    possible wear as a note), then the method's own checks
+    (:meth:`~cutterpose.solvers.method.PoseMethod.review`)."""
+    budget, bias, offset_px = None, None, math.nan
+    if estimate:
+        budget = method.budget(estimate, features, camera, holder, limits)
+        bias, offset_px = edge_wear_effect(estimate.pose, features, camera, holder)
+    amb = ambiguity_ratio(estimate, features.corners_ideal_px, camera, holder,
+                          order=features.order)
+    q = verdict(estimate, budget, limits, amb, bias, offset_px)
+    return method.review(q, estimate, features, camera, holder, limits)
 
 
-def _has_corners(features: Features) -> bool:
-    return bool(np.isfinite(np.asarray(features.corners_px, float)).all(axis=1).any())
-
-
-def ambiguity_ratio(est: PoseEstimate, corners_ideal_px, camera: Camera, holder: Holder,
-                    min_rotation_deg: float = 1.0, order: str = "contour") -> float:
-    """RMS residual of the best pose over that of the best *different* candidate (rotation
-    at least ``min_rotation_deg`` away; the planar two-fold ambiguity); NaN without one."""
-    from .geometry.pose import geodesic_deg
-
-    if not est or not est.candidates:
-        return math.nan
-    R0 = est.R_cam_holder
-    others = [(R, t) for R, t in est.candidates
-              if geodesic_deg(R0, np.asarray(R, float)) > min_rotation_deg]
-    if not others:
-        return math.nan
-
-    def rms(R, t):
-        dof = Pose(np.asarray(R, float), np.asarray(t, float).reshape(3)).dof
-        proj = _project_ideal(dof, camera, holder)
-        det = _match_to_projection(np.asarray(corners_ideal_px, float), proj, order)
-        return float(np.sqrt(np.nanmean(np.sum((det - proj) ** 2, axis=1))))
-
-    e0 = rms(R0, est.t_cam_holder_mm)
-    e1 = min(rms(R, t) for R, t in others)
-    return e0 / e1 if e1 > 0 else 1.0
-
-
-def _bias_text(bias) -> str:
-    return ", ".join(f"{n} {b:.2f} {'deg' if k < 3 else 'mm'}"
-                     for k, (n, b) in enumerate(zip(DOF_NAMES, bias)))
-
-
-def _verdict(est: PoseEstimate, std, r, limits: QualityLimits, amb: float = math.nan,
-             bias=None, offset_px: float = math.nan, budget: ErrorBudget | None = None
-             ) -> Quality:
-    if est is None or not est:
-        return Quality(False, f"no pose: {est.reason if est is not None else 'not solved'}",
-                       ambiguity_ratio=amb)
-    rms = float(np.sqrt(np.mean(np.sum(r ** 2, axis=1))))
-    q = Quality(True, "", rms, amb, bias, offset_px, budget=budget)
-    if bias is not None and np.all(np.isfinite(bias)) and offset_px > 0.1:
-        q.note = (f"edges worn: contour position uncertain by ~{offset_px:.1f} px, pose may be "
-                  f"biased by {_bias_text(bias)} (in the error budget)")
-    dof = Pose(est.R_cam_holder, est.t_cam_holder_mm).dof
-    lo = np.subtract(limits.range_center_dof, limits.range_half_width_dof)
-    hi = np.add(limits.range_center_dof, limits.range_half_width_dof)
-    tol = np.asarray(limits.range_tolerance_dof)
-    out = (dof < lo - tol) | (dof > hi + tol)
-    worst = float(np.sqrt(np.sum(r ** 2, axis=1)).max())
-    if rms > limits.max_rms_px:
-        q.ok, q.reason = False, (f"corner residual RMS {rms:.2f} px > {limits.max_rms_px} px: "
-                                 "the corners do not fit the holder model")
-    elif worst > limits.max_corner_residual_px:
-        q.ok, q.reason = False, (f"a corner is {worst:.2f} px off the model (> "
-                                 f"{limits.max_corner_residual_px} px)")
-    elif out.any():
-        names = [f"{DOF_NAMES[k]}={dof[k]:.1f}" for k in np.nonzero(out)[0]]
-        q.ok, q.reason = False, f"pose outside the working range: {', '.join(names)}"
-    elif math.isfinite(amb) and amb > limits.max_ambiguity_ratio:
-        q.ok, q.reason = False, (f"planar ambiguity: a second pose fits almost as well (ratio "
-                                 f"{amb:.2f} > {limits.max_ambiguity_ratio})")
-    elif not np.all(np.isfinite(std)) or np.any(std > np.asarray(limits.max_std_dof)):
-        q.ok, q.reason = False, f"pose too uncertain: std {np.round(std, 3).tolist()}"
-    elif budget is not None and (why := budget.exceeds(limits.tolerance)):
-        q.ok, q.reason = False, why
-    return q
-
-
-def band_budget(band, dof, limits: QualityLimits) -> tuple[ErrorBudget, np.ndarray]:
-    """``dm+b``'s error budget at ``dof`` (its covariance parts,
-    :class:`~cutterpose.solvers.edge_band.BandPose`) and its residuals: (M, 2) vectors (ideal
-    px) along the edge normals of the inlier segments (dm+b has no corner residuals)."""
-    budget = budget_from_dof_cov(band.cov_parts, dof, limits.grasp_point_mm, limits.tolerance,
-                                 band.radius_mm)
-    inl = band.weights > 0.5
-    return budget, band.residuals_px[inl, None] * band.fit.profiles.normals_ideal[inl]
-
-
-def band_verdict(est: PoseEstimate, limits: QualityLimits) -> Quality:
-    """The verdict on a ``dm+b`` estimate made without image features (the tracker's
-    re-anchoring: :func:`~cutterpose.solvers.edge_band.measure_band` from a tracked pose): its
-    residuals, working range and error budget, as in :func:`measure_features`."""
-    if not est:
-        return _verdict(est, np.full(6, np.nan), np.zeros((0, 2)), limits)
-    if est.info.get("band") is None:
-        return Quality(False, f"{est.method} carries no band fit to judge")
-    budget, r = band_budget(est.info["band"], Pose(est.R_cam_holder, est.t_cam_holder_mm).dof,
-                            limits)
-    return _verdict(est, budget.std_dof, r, limits, budget=budget)
-
-
-def measure_features(features: Features, camera: Camera, holder: Holder, method: str = "dm+b",
-                     limits: QualityLimits | None = None, edge_look=None, *,
-                     outline_failed: str | None = None) -> Measurement:
-    """Pose, std and verdict from already detected features (one image, several methods).
+def measure_features(features: Features, camera: Camera, holder: Holder,
+                     method: str | PoseMethod = "dm+b", limits: QualityLimits | None = None,
+                     edge_look=None, *, outline_failed: str | None = None) -> Measurement:
+    """Pose, std and verdict from already detected features (one image, several methods):
+    features -> ``method.estimate`` -> ``method.budget`` -> verdict (:func:`judge`).
     ``edge_look``: the edge look calibrated in the cell
-    (:class:`cutterpose.calibration.edge_look.EdgeLookCalibration`; ``dm+b`` only).
-    ``outline_failed``: the reason a refinement from the outline's pose already failed on
-    this image (:func:`_refine`): it starts from the corners' pose directly."""
+    (:class:`cutterpose.calibration.edge_look.EdgeLookCalibration`; the methods that fit the
+    edge's look use it). ``outline_failed``: the reason a refinement from the method's own
+    start already failed on this image
+    (:meth:`~cutterpose.solvers.method.RefinementMethod.estimate`): it starts from the
+    corners' pose directly."""
     limits = limits or QualityLimits()
+    meth = get_method(method)
     timings = dict(features.timings_ms)
     t0 = time.perf_counter()
     try:
-        if get_method(method).base is not None:
-            est = _refine(method, features, camera, holder, limits, edge_look, outline_failed)
-        else:
-            est = _solve(method, features.corners_px, camera, holder, limits, features.order,
-                         features.H_ideal_holder)
+        est = meth.estimate(features, camera, holder,
+                            MethodContext(limits, edge_look, outline_failed))
     except CutterposeError as e:
-        est = PoseEstimate.failure(method, f"{type(e).__name__}: {e}")
+        est = PoseEstimate.failure(meth.name, f"{type(e).__name__}: {e}")
     timings["solve"] = (time.perf_counter() - t0) * 1e3
     t0 = time.perf_counter()
-    std = np.full(6, np.nan)
-    r = np.zeros((0, 2))
-    pose = None
-    budget = None
-    if est:
-        pose = Pose(est.R_cam_holder, est.t_cam_holder_mm)
-        bias, offset_px = edge_wear_effect(pose, features, camera, holder)
-        fit = est.info.get("radius_fit")
-        band = est.info.get("band")
-        if band is not None:
-            budget, r = band_budget(band, pose.dof, limits)
-        elif fit is not None:
-            # dm+r: the model corners of the broken edge give the residuals and the budget
-            r = fit.residuals_px
-            budget = budget_from_fit(fit, camera, holder, limits.grasp_point_mm,
-                                     limits.tolerance)
-        else:
-            seen, J_all, r = _corner_fit(pose, features.corners_ideal_px, camera, holder,
-                                         features.order)
-            J_seen = J_all[np.repeat(seen, 2)]
-            cov = _noise_cov(J_seen, r)
-            parts = {"noise": np.where(np.isfinite(cov), cov, np.inf)}
-            off_fit = _least_squares_step(J_seen, r)              # fit_offset
-            if np.all(np.isfinite(off_fit)):
-                # a method that does not minimise the corners' residuals (dm's search, the
-                # linear PnP) is off their least-squares pose by more than the noise: that
-                # step d is an error of its own (~0 for dm+ and the +lm methods). As 1 sigma
-                # of 2/3 d, the 3-sigma figure sqrt(9 s^2 + 4 d^2) is at least |d| + 3 s
-                # whenever |d| >= 2 s (s the noise's sigma), and within 10 % of it below
-                parts["method"] = (4.0 / 9.0) * np.outer(off_fit, off_fit)
-            if bias is not None and np.all(np.isfinite(bias)):
-                # a systematic error the residuals do not show
-                parts["wear"] = np.diag(bias ** 2)
-            brk = limits.assumed_edge_break_mm
-            if brk > 0:
-                # the seen edge lies 0..brk outside the design edge, the pose bias with it:
-                # a 1 sigma of brk / 3 makes the 3-sigma figure that whole range's shift (rank
-                # one: the one offset moves every DOF)
-                s = edge_break_effect(pose, camera, holder, seen, brk / 3.0, J_all)
-                parts["edge break"] = np.outer(s, s)
-            budget = budget_from_dof_cov(parts, pose.dof, limits.grasp_point_mm,
-                                         limits.tolerance)
-        std = budget.std_dof
-    else:
-        bias, offset_px = None, math.nan
-    amb = ambiguity_ratio(est, features.corners_ideal_px, camera, holder,
-                          order=features.order)
-    q = _verdict(est, std, r, limits, amb, bias, offset_px, budget)
-    brk = budget.per_part_3sigma.get("edge break") if budget is not None else None
-    tol = limits.tolerance
-    if not q.ok and brk is not None and (brk[0] > tol.position_mm or brk[1] > tol.angle_deg):
-        # the break alone exceeds the tolerance: say what would make it measurable
-        q.reason += (f" ({method} sees the broken edge, not the design edge: a break up to "
-                     f"{limits.assumed_edge_break_mm:g} mm; dm+b measures it, or give the "
-                     "holder's break, 0 for a sharp edge)")
-    if (q.ok and pose is not None and get_method(method).base is None
-            and features.order == "holder"):
-        # the corners may fit a wrong pose when few are seen (dm/dm+ need no correspondences):
-        # every seen edge, with or without its corners, must lie on the model at the pose.
-        # A refining method's pose is the design edge's, which the seen (innermost) edges are
-        # offset from by the break: its own residuals judge it (dm+r's model corners, dm+b's
-        # band points)
-        k, off = worst_line_residual(pose, features, camera, holder)
-        if off > limits.max_corner_residual_px:
-            q.ok, q.reason = False, (f"pocket edge {k} is {off:.1f} px off the model at this "
-                                     f"pose (> {limits.max_corner_residual_px} px): the corners "
-                                     "fit a wrong pose")
+    q = judge(meth, est, features, camera, holder, limits)
     timings["quality"] = (time.perf_counter() - t0) * 1e3
-    return Measurement(method, pose, std, q, features.visible_corners_px, features, est, timings)
-
-
-def worst_line_residual(pose: Pose, features: Features, camera: Camera, holder: Holder
-                        ) -> tuple[int, float]:
-    """The seen edge line (field chain, holder order) farthest from the model edge projected at
-    ``pose``: its index and the larger distance (ideal px) of the model edge's two ends from
-    the line; ``(-1, 0.0)`` without seen lines."""
-    L = np.asarray(features.lines_ideal, float)
-    seen = np.asarray(features.lines_visible, bool) & np.isfinite(L).all(axis=1)
-    if not seen.any():
-        return -1, 0.0
-    q = _project_ideal(pose.dof, camera, holder)
-    a, b = q, np.roll(q, -1, axis=0)                 # edge k runs from corner k to k + 1
-    n = L[:, :2] / np.linalg.norm(L[:, :2], axis=1, keepdims=True)
-    off = L[:, 2] / np.linalg.norm(L[:, :2], axis=1)
-    d = np.maximum(np.abs(np.sum(n * a, axis=1) + off), np.abs(np.sum(n * b, axis=1) + off))
-    d = np.where(seen, d, -np.inf)
-    k = int(np.argmax(d))
-    return k, float(d[k])
+    std = q.budget.std_dof if q.budget is not None else np.full(6, np.nan)
+    return Measurement(meth.name, est.pose if est else None, std, q,
+                       features.visible_corners_px, features, est, timings)
 
 
 def measure(image, camera: Camera | None = None, holder: Holder | None = None,
             method: str = "dm+b", params: FeatureParams | None = None,
             limits: QualityLimits | None = None, grasp_point_mm=None, *, handeye=None,
-            T_base_flange=None, robot_accuracy=None, edge_look=None,
+            T_base_flange=None, robot_accuracy=None, grasp_tolerance=None, edge_look=None,
             corners: bool | None = None) -> Measurement:
     """Measure the holder's pose in one image (and, given ``handeye`` and ``T_base_flange``,
     in the robot's base frame: :func:`cutterpose.robot.locate`, result in ``.robot``).
@@ -786,7 +288,8 @@ def measure(image, camera: Camera | None = None, holder: Holder | None = None,
     limits : when to refuse a pose.
     grasp_point_mm : (3,) holder-frame point whose position the error budget checks (default
         ``limits.grasp_point_mm``, the origin: the centre of the pocket's top plane).
-    handeye, T_base_flange, robot_accuracy : see :func:`cutterpose.robot.locate`.
+    handeye, T_base_flange, robot_accuracy, grasp_tolerance : the robot path
+        (:func:`cutterpose.robot.locate`; ``grasp_tolerance`` its ``tolerance``).
     edge_look : the edge look calibrated in the cell on a reference holder
         (:func:`cutterpose.calibration.edge_look.load_edge_look`): ``dm+b`` fits it instead of
         its generic looks; other methods ignore it.
@@ -810,7 +313,7 @@ def measure(image, camera: Camera | None = None, holder: Holder | None = None,
     """
     camera = camera or default_camera("table1")
     holder = holder or default_holder()
-    m_def = get_method(method)  # unknown names fail before any work
+    meth = get_method(method)  # unknown names fail before any work
     if grasp_point_mm is not None:
         p = np.asarray(grasp_point_mm, float).reshape(-1)
         if p.shape != (3,) or not np.all(np.isfinite(p)):
@@ -822,37 +325,42 @@ def measure(image, camera: Camera | None = None, holder: Holder | None = None,
         # a file is decoded (or read raw); a raw buffer is only viewed (cutterpose.frames)
         image = load_frame(image, camera)
         load_ms = (time.perf_counter() - t0) * 1e3
-    # a method that starts from the outline needs no corners on the field chain: the line fits
-    # are skipped (a third of the image stage)
+    m = _measure_frame(image, camera, holder, meth, params, limits, edge_look, corners)
+    if load_ms:
+        m.timings_ms = {"load": load_ms} | m.timings_ms
+    m.timings_ms["total"] = (time.perf_counter() - t0) * 1e3
+    return _with_robot(m, camera, holder, handeye, T_base_flange, robot_accuracy,
+                       grasp_tolerance)
+
+
+def _measure_frame(image: np.ndarray, camera: Camera, holder: Holder, meth: PoseMethod,
+                   params, limits, edge_look, corners: bool | None) -> Measurement:
+    """Features -> :func:`measure_features`; a method that found nothing without the corners
+    (``dm+b`` from the outline's pose) gets them and starts again from their pose."""
+    # a method that needs no corners (dm+b starts from the outline): the line fits are skipped
+    # on the field chain (a third of the image stage)
     if corners is None:
-        corners = not m_def.start_from_outline
+        corners = meth.needs_corners
     try:
         feats = detect_features(image, camera, holder, params, corners=corners)
     except FeatureError as e:
-        timings = {"load": load_ms} if load_ms else {}
-        timings["total"] = (time.perf_counter() - t0) * 1e3
-        return _with_robot(Measurement(method, None, np.full(6, np.nan), Quality(False, str(e)),
-                                       timings_ms=timings),
-                           camera, holder, handeye, T_base_flange, robot_accuracy)
-    m = measure_features(feats, camera, holder, method, limits, edge_look)
+        return Measurement(meth.name, None, np.full(6, np.nan), Quality(False, str(e)))
+    m = measure_features(feats, camera, holder, meth, limits, edge_look)
     if (m.pose is None and feats.segmentation == "outline" and m.estimate is not None
             and not m.estimate):
-        # the refinement found nothing from the outline's pose: the corners, and their pose
-        # as the start (_refine); the first attempt's time stays in the total
+        # the first attempt's time stays in the total
         try:
             feats = detect_features(image, camera, holder, params, corners=True)
         except FeatureError:
             pass
         else:
-            m = measure_features(feats, camera, holder, method, limits, edge_look,
+            m = measure_features(feats, camera, holder, meth, limits, edge_look,
                                  outline_failed=m.estimate.reason)
-    if load_ms:
-        m.timings_ms = {"load": load_ms} | m.timings_ms
-    m.timings_ms["total"] = (time.perf_counter() - t0) * 1e3
-    return _with_robot(m, camera, holder, handeye, T_base_flange, robot_accuracy)
+    return m
 
 
-def _with_robot(m: Measurement, camera, holder, handeye, T_base_flange, robot_accuracy):
+def _with_robot(m: Measurement, camera, holder, handeye, T_base_flange, robot_accuracy,
+                grasp_tolerance=None):
     """Attach the base-frame answer when both a hand-eye file and a flange pose are given."""
     if handeye is None and T_base_flange is None:
         return m
@@ -860,7 +368,8 @@ def _with_robot(m: Measurement, camera, holder, handeye, T_base_flange, robot_ac
         raise InputError("the base frame needs both a hand-eye file and a flange pose")
     from .robot.locate import locate
 
-    m.robot = locate(m, handeye, T_base_flange, robot_accuracy, camera=camera, holder=holder)
+    m.robot = locate(m, handeye, T_base_flange, robot_accuracy, camera=camera, holder=holder,
+                     tolerance=grasp_tolerance)
     return m
 
 

@@ -104,52 +104,36 @@ def measure_cmd(
 
     from ..errors import InputError
     from ..frames import load_frame, parse_raw_size
-    from ..geometry.holder import default_holder, load_holder
-    from ..pipeline import measure
+    from ..robot import GraspTolerance, RobotAccuracy, load_flange_pose
+    from ..station import build_station
 
-    cam = camera_from_option(camera)
-    hol = load_holder(holder) if holder else None
-    look = load_edge_look(edge_look)
     if (handeye is None) != (flange_pose is None):
         raise InputError("the base frame needs both --handeye and --flange-pose")
-    robot = None
-    if handeye is not None:
-        from ..robot import GraspTolerance, RobotAccuracy, load_flange_pose, load_handeye
-
-        robot = (load_handeye(handeye),
-                 load_flange_pose(flange_pose, convention, length_unit, angle_unit),
-                 RobotAccuracy(robot_accuracy_mm, robot_accuracy_deg),
-                 GraspTolerance(
-                     renamed(position_tol_mm, old_position_tol_mm, "--grasp-tol-mm",
-                             "--position-tol-mm") or 1.0,
-                     angle_deg=renamed(angle_tol_deg, old_angle_tol_deg, "--grasp-tol-deg",
-                                       "--angle-tol-deg")))
-
     if chain not in ("field", "paper"):
         fail(f"--chain must be 'field' or 'paper', got {chain!r}")
+    station = build_station(
+        camera_from_option(camera), holder, method, chain=chain, distance_mm=distance_mm,
+        edge_shape=edge_shape, edge_break_mm=edge_break_mm,
+        tolerance=budget_tolerance(budget_tol_mm, budget_tol_deg, old_budget_tol_mm,
+                                   old_budget_tol_deg),
+        edge_look=load_edge_look(edge_look), handeye=handeye,
+        robot_accuracy=RobotAccuracy(robot_accuracy_mm, robot_accuracy_deg),
+        grasp_tolerance=GraspTolerance(
+            renamed(position_tol_mm, old_position_tol_mm, "--grasp-tol-mm",
+                    "--position-tol-mm") or 1.0,
+            angle_deg=renamed(angle_tol_deg, old_angle_tol_deg, "--grasp-tol-deg",
+                              "--angle-tol-deg")))
+    flange = (load_flange_pose(flange_pose, convention, length_unit, angle_unit)
+              if flange_pose is not None else None)
     t0 = time.perf_counter()
-    img = load_frame(image, cam, parse_raw_size(raw) if raw else None, pixel_format)
+    img = load_frame(image, station.camera, parse_raw_size(raw) if raw else None, pixel_format)
     load_ms = (time.perf_counter() - t0) * 1e3
-    from ..pipeline import QualityLimits, station_center_dof, station_params
-
-    m = measure(img, cam, hol, method, params=station_params(cam, chain, distance_mm),
-                limits=QualityLimits(edge_shape=edge_shape, edge_break_mm=edge_break_mm,
-                                     tolerance=budget_tolerance(budget_tol_mm, budget_tol_deg,
-                                                               old_budget_tol_mm,
-                                                               old_budget_tol_deg),
-                                     range_center_dof=station_center_dof(distance_mm)),
-                edge_look=look, corners=True if corners else None)
+    m = station.measure(img, T_base_flange=flange, corners=True if corners else None)
     m.timings_ms = {"load": load_ms} | m.timings_ms
-    if robot is not None:
-        from ..robot import locate
-
-        m.robot = locate(m, robot[0], robot[1], robot[2], camera=cam,
-                         holder=hol or default_holder(), tolerance=robot[3])
     if overlay:
-        from ..geometry.holder import default_holder
         from ..overlay import write_overlay
 
-        write_overlay(img, m, cam, hol or default_holder(), overlay)
+        write_overlay(img, m, station.camera, station.holder, overlay)
         log(f"wrote {overlay}")
     if as_json:
         typer.echo(_json.dumps(m.to_dict()))
@@ -199,12 +183,10 @@ def _robot_lines(r) -> list[str]:
 @app.command("methods")
 def list_methods():
     """List the pose methods this build provides."""
-    from ..methods import _ENTRIES, available_methods
+    from ..methods import describe_methods
 
-    avail = set(available_methods())
-    for name, entry in _ENTRIES.items():
-        mark = "" if name in avail else "  (not available)"
-        typer.echo(f"{name:16s} {entry[3]}{mark}")
+    for name, description in describe_methods().items():
+        typer.echo(f"{name:16s} {description}")
     typer.echo("<pnp-method>+lm   any correspondence method refined by Levenberg-Marquardt")
 
 

@@ -67,7 +67,6 @@ from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
-from ..budget import Tolerance
 from ..calibration.edge_look import EdgeLookCalibration, load_edge_look
 from ..calibration.handeye import HandEye, load_handeye
 from ..errors import CellFileError, CutterposeError
@@ -76,8 +75,9 @@ from ..geometry.camera_files import load_camera
 from ..geometry.holder import Holder, default_holder, load_holder
 from ..image import FeatureParams
 from ..methods import get_method
-from ..pipeline import QualityLimits, station_center_dof, station_params
+from ..pipeline import QualityLimits, station_params
 from ..robot import GraspTolerance, RobotAccuracy
+from ..station import Station, build_station
 
 __all__ = ["Cell", "ServiceSettings", "load_cell", "bundled_cell_path", "TOKEN_ENV",
            "DATA_DIR_ENV"]
@@ -219,6 +219,8 @@ class Cell:
     edge_look: EdgeLookCalibration | None = None
     #: the measuring station's camera-to-holder distance (None: the paper's 600 mm)
     distance_mm: float | None = None
+    #: the measuring station these fields make (:func:`cutterpose.station.build_station`)
+    station: Station | None = None
 
     def holder(self, name: str | None) -> Holder:
         return self.holders[name or self.default_holder]
@@ -226,6 +228,8 @@ class Cell:
     def feature_params(self) -> FeatureParams:
         """The image processing parameters, as ``cutterpose measure --chain --distance-mm``
         uses them."""
+        if self.station is not None:
+            return self.station.params
         return station_params(self.camera, self.chain, self.distance_mm)
 
     def for_worker(self) -> Cell:
@@ -347,11 +351,13 @@ def load_cell(path: str | Path | None = None, env: dict | None = None,
     except (CutterposeError, ValueError) as e:
         raise field_error("robot", e) from None
     overrides = {k: v for k, v in cf.tolerances.model_dump().items() if v is not None}
-    if "tolerance" in overrides:
-        overrides["tolerance"] = Tolerance(**overrides["tolerance"])
-    if cf.distance_mm is not None and "range_center_dof" not in overrides:
-        overrides["range_center_dof"] = station_center_dof(cf.distance_mm)
-    limits = QualityLimits(**overrides)
+    try:
+        station = build_station(camera, holders[cf.default_holder], cf.method, chain=cf.chain,
+                                distance_mm=cf.distance_mm, limits=overrides,
+                                edge_look=edge_look, handeye=handeye, robot_accuracy=accuracy,
+                                grasp_tolerance=tolerance)
+    except CutterposeError as e:
+        raise field_error("tolerances", e) from None
     s = cf.service
     data_dir = env.get(DATA_DIR_ENV) or s.data_dir or "cutterpose-data"
     workers = s.workers or (os.cpu_count() or 1)
@@ -375,6 +381,6 @@ def load_cell(path: str | Path | None = None, env: dict | None = None,
     return Cell(path=path, name=cf.name, camera=camera, camera_source=cf.camera,
                 distance_mm=cf.distance_mm,
                 holders=holders, default_holder=cf.default_holder, method=cf.method,
-                chain=cf.chain, limits=limits, handeye=handeye, handeye_path=handeye_path,
-                robot_accuracy=accuracy, grasp_tolerance=tolerance, service=service,
-                token=token, edge_look=edge_look)
+                chain=cf.chain, limits=station.limits, handeye=handeye,
+                handeye_path=handeye_path, robot_accuracy=accuracy, grasp_tolerance=tolerance,
+                service=service, token=token, edge_look=edge_look, station=station)

@@ -56,19 +56,25 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
+from ..budget import ErrorBudget, budget_from_dof_cov
 from ..errors import CutterposeError, InputError
 from ..geometry.camera import Camera
 from ..geometry.holder import Holder
-from ..geometry.pose import Pose, rotation_from_euler_deg
+from ..geometry.pose import Pose, pose_from_plane_homography, rotation_from_euler_deg
 from ..image import edge_model as em
 from ..image.edge_band import BandFit, BandLooks, fit_band, sample_band, view_lean
+from ..verdict import Quality, QualityLimits, verdict
+from .dm import DmPlus
 from .estimate import PoseEstimate
+from .method import RefinementMethod
 
-__all__ = ["BandPose", "as_band_looks", "design_pose", "edge_noise_cov", "fit_pose_design_points",
-           "measure_band", "refine_features", "solve", "variance_components", "SHIFT_FLOOR_MM"]
+__all__ = ["BandPose", "EdgeBand", "as_band_looks", "band_budget", "band_verdict", "design_pose",
+           "edge_noise_cov", "fit_pose_design_points", "measure_band", "outline_start",
+           "refine_features", "solve", "variance_components", "SHIFT_FLOOR_MM"]
 
 #: the band model's systematic uncertainty as a uniform outward shift of the design edge (mm
 #: in the face plane, 1 sigma): on the development pbr sets at ~4 px/mm the design edge of
@@ -357,61 +363,64 @@ def _look_spread(fit: BandFit, K, dof, valid) -> np.ndarray:
     return np.einsum("l,li,lj->ij", w, d, d) / (1.0 + w.sum())
 
 
-def measure_band(image, camera: Camera, holder: Holder, start: PoseEstimate,
-                 edges_seen=None, shapes=("round", "chamfer"), max_passes: int | None = None,
-                 looks: BandLooks | None = None) -> PoseEstimate:
-    """``dm+b`` from a start pose (module doc). A falsy estimate with the reason when the band
-    cannot be measured. ``looks``: the edge look calibrated in the cell
-    (:mod:`cutterpose.calibration.edge_look`) instead of the generic looks."""
-    t0 = time.perf_counter()
-    max_passes = PASSES if max_passes is None else max_passes
-    if not start:
-        return PoseEstimate.failure("dm+b", f"start: {start.reason}")
-    dof = Pose(start.R_cam_holder, start.t_cam_holder_mm).dof
-    K = camera.K
-    passes = 0
-    fit = None
-    try:
-        for passes in range(1, max_passes + 1):
-            R = rotation_from_euler_deg(*dof[:3])
-            # the first pass (look choice, the pose to within a fraction of a millimetre) on
-            # half the segments; the last on all of them with the looks chosen
-            last = passes == max_passes
-            n_seg = SEGMENTS_PER_EDGE if last else max(1, SEGMENTS_PER_EDGE // 2)
-            bp = sample_band(image, camera, holder, R, dof[3:], edges_seen, n_seg=n_seg,
-                             positions=POSITIONS_PER_SEGMENT * SEGMENTS_PER_EDGE // n_seg)
-            valid = bp.valid.copy()
-            if valid.sum() < MIN_SEGMENT_FRACTION * len(valid):
-                return PoseEstimate.failure(
-                    "dm+b", f"the edge band was measured on {int(valid.sum())} of "
-                    f"{len(valid)} edge segments (< {100 * MIN_SEGMENT_FRACTION:.0f} %): "
-                    "edges hidden")
-            fit = fit_band(bp, camera, holder, R, dof[3:], shapes,
-                           previous=fit if passes > 1 else None, fine_plausible=last,
-                           looks=looks)
-            valid &= np.isfinite(fit.best.cost) & np.isfinite(fit.best.shift_var_px2)
-            if valid.sum() < MIN_SEGMENT_FRACTION * len(valid):
-                return PoseEstimate.failure(
-                    "dm+b", f"the band's profile fixes the design edge on {int(valid.sum())} "
-                    f"of {len(valid)} edge segments only: edges hidden or featureless")
-            p = fit.design_points_px()[valid]
-            sd = _sd(fit.best)[valid]
-            new, J, r, w, s = fit_pose_design_points(
-                p, bp.normals_ideal[valid], bp.points_holder_mm[valid], K, dof, sd)
-            dof = new
-    except CutterposeError as e:
-        return PoseEstimate.failure("dm+b", f"edge band: {e}")
-    try:
-        # the segments' variances know the pixel noise; a larger scatter scales them up, and
-        # what the segments of one edge share counts once per edge
-        cov_noise = edge_noise_cov(J, r / sd, w, bp.edge[valid])
-    except np.linalg.LinAlgError:
-        cov_noise = np.full((6, 6), np.inf)
-    cov_model = _look_spread(fit, K, dof, valid)
+class _Passes(NamedTuple):
+    """The band's last pass: the pose fitted to the design-edge points and what it was fitted
+    on (:func:`_fit_passes`)."""
 
-    def uniform(shift_mm: float) -> np.ndarray:
-        """The pose change for a uniform outward shift of every design point (mm)."""
-        return design_pose(fit, fit.best.moved(shift_mm, bp.px_per_mm), K, dof, valid) - dof
+    dof: np.ndarray
+    fit: BandFit
+    bp: object          # the sampled band (BandProfiles)
+    valid: np.ndarray   # (S,) the segments the pose was fitted on
+    J: np.ndarray
+    r: np.ndarray
+    w: np.ndarray
+    s: float
+    sd: np.ndarray
+    passes: int
+
+
+def _fit_passes(image, camera: Camera, holder: Holder, dof, edges_seen, shapes,
+                max_passes: int, looks) -> _Passes | str:
+    """Sample the band at ``dof`` and fit the pose to its design-edge points, ``max_passes``
+    times (module doc); the last pass, or why the band cannot be measured."""
+    K = camera.K
+    fit = None
+    for passes in range(1, max_passes + 1):
+        R = rotation_from_euler_deg(*dof[:3])
+        # the first pass (look choice, the pose to within a fraction of a millimetre) on half
+        # the segments; the last on all of them with the looks chosen
+        last = passes == max_passes
+        n_seg = SEGMENTS_PER_EDGE if last else max(1, SEGMENTS_PER_EDGE // 2)
+        bp = sample_band(image, camera, holder, R, dof[3:], edges_seen, n_seg=n_seg,
+                         positions=POSITIONS_PER_SEGMENT * SEGMENTS_PER_EDGE // n_seg)
+        valid = bp.valid.copy()
+        if valid.sum() < MIN_SEGMENT_FRACTION * len(valid):
+            return (f"the edge band was measured on {int(valid.sum())} of {len(valid)} edge "
+                    f"segments (< {100 * MIN_SEGMENT_FRACTION:.0f} %): edges hidden")
+        fit = fit_band(bp, camera, holder, R, dof[3:], shapes,
+                       previous=fit if passes > 1 else None, fine_plausible=last, looks=looks)
+        valid &= np.isfinite(fit.best.cost) & np.isfinite(fit.best.shift_var_px2)
+        if valid.sum() < MIN_SEGMENT_FRACTION * len(valid):
+            return (f"the band's profile fixes the design edge on {int(valid.sum())} of "
+                    f"{len(valid)} edge segments only: edges hidden or featureless")
+        p = fit.design_points_px()[valid]
+        sd = _sd(fit.best)[valid]
+        dof, J, r, w, s = fit_pose_design_points(
+            p, bp.normals_ideal[valid], bp.points_holder_mm[valid], K, dof, sd)
+    return _Passes(dof, fit, bp, valid, J, r, w, s, sd, passes)
+
+
+def _calibration_parts(st: _Passes, K, holder: Holder, looks, cov_model: np.ndarray
+                       ) -> tuple[np.ndarray, dict, bool | None]:
+    """With a look calibrated in the cell (module doc, ``edge model``, ``model floor``,
+    ``calibration extrapolated``): the edge-model covariance with the calibration's parts,
+    the parts that replace or extend the model floor, and whether the calibration covers this
+    pose (None without one)."""
+    fit, bp, valid, dof = st.fit, st.bp, st.valid, st.dof
+
+    def moved(shift) -> np.ndarray:
+        """The pose change for an outward shift of every design point (mm, or per segment)."""
+        return design_pose(fit, fit.best.moved(shift, bp.px_per_mm), K, dof, valid) - dof
 
     off = looks.offsets if looks is not None else None
     shape = fit.best.look.shape
@@ -424,7 +433,7 @@ def measure_band(image, camera: Camera, holder: Holder, start: PoseEstimate,
         # a calibrated look: the scatter of the design-edge offset over the reference images
         # (measured at their known poses) is this image's remaining look error
         if sc:
-            d_s = uniform(sc)
+            d_s = moved(sc)
             cov_model = cov_model + np.outer(d_s, d_s)
         # and the calibrated offset's and depth's own uncertainty, jointly (they correlate
         # through the segments' mean lean): the pose change along each main axis of their
@@ -435,41 +444,71 @@ def measure_band(image, camera: Camera, holder: Holder, start: PoseEstimate,
             for lam, u in zip(val, vec.T):
                 if lam > 0:
                     o, d = math.sqrt(lam) * u
-                    d_c = design_pose(fit, fit.best.moved(o - d * lean, bp.px_per_mm), K, dof,
-                                      valid) - dof
+                    d_c = moved(o - d * lean)
                     cov_model = cov_model + np.outer(d_c, d_c)
-    parts = {"noise": cov_noise, "edge model": cov_model}
     r_med = fit.radius_median_mm
     covers = None if off is None else bool(
         sc and off.covers(float(dof[5]), shape, r_med if np.isfinite(r_med) else None))
+    parts = {}
     if not covers:
         # a uniform outward shift of the design edge by the model floor: what no look shows;
         # a calibration that measured the offsets' scatter at known poses at this distance
         # replaces the guess
-        d_u = uniform(SHIFT_FLOOR_MM)
+        d_u = moved(SHIFT_FLOOR_MM)
         parts["model floor"] = np.outer(d_u, d_u)
         if off:
             # and its correction is extrapolated: how it carries to other distances or breaks
             # was not measured (its offset and depth, fitted at the reference poses, move each
             # segment by a different amount: a tilt as well as a depth), so the pose change
             # for leaving it out is 1 sigma of what it may be off by here
-            d_x = design_pose(fit, fit.best.moved(-off.offset(shape, lean), bp.px_per_mm), K,
-                              dof, valid) - dof
+            d_x = moved(-off.offset(shape, lean))
             parts["calibration extrapolated"] = np.outer(d_x, d_x)
+    return cov_model, parts, covers
+
+
+def measure_band(image, camera: Camera, holder: Holder, start: PoseEstimate,
+                 edges_seen=None, shapes=("round", "chamfer"), max_passes: int | None = None,
+                 looks: BandLooks | None = None) -> PoseEstimate:
+    """``dm+b`` from a start pose (module doc). A falsy estimate with the reason when the band
+    cannot be measured. ``looks``: the edge look calibrated in the cell
+    (:mod:`cutterpose.calibration.edge_look`) instead of the generic looks."""
+    t0 = time.perf_counter()
+    max_passes = PASSES if max_passes is None else max_passes
+    if not start:
+        return PoseEstimate.failure("dm+b", f"start: {start.reason}")
+    try:
+        st = _fit_passes(image, camera, holder, Pose(start.R_cam_holder,
+                                                     start.t_cam_holder_mm).dof,
+                         edges_seen, shapes, max_passes, looks)
+    except CutterposeError as e:
+        return PoseEstimate.failure("dm+b", f"edge band: {e}")
+    if isinstance(st, str):
+        return PoseEstimate.failure("dm+b", st)
+    dof, valid, r, w = st.dof, st.valid, st.r, st.w
+    try:
+        # the segments' variances know the pixel noise; a larger scatter scales them up, and
+        # what the segments of one edge share counts once per edge
+        cov_noise = edge_noise_cov(st.J, r / st.sd, w, st.bp.edge[valid])
+    except np.linalg.LinAlgError:
+        cov_noise = np.full((6, 6), np.inf)
+    cov_model, more, covers = _calibration_parts(st, camera.K, holder, looks,
+                                                 _look_spread(st.fit, camera.K, dof, valid))
+    parts = {"noise": cov_noise, "edge model": cov_model} | more
     res = np.full(len(valid), np.nan)
     res[valid] = r
     wt = np.zeros(len(valid))
     wt[valid] = w
-    s_w2, s_u2 = variance_components(np.sqrt(w) * r, bp.edge[valid])
-    band = BandPose(dof, parts, fit, res, wt, s, passes, calibrated=looks is not None,
-                    calibration_covers=covers, residual_within_edge_px=math.sqrt(s_w2),
+    s_w2, s_u2 = variance_components(np.sqrt(w) * r, st.bp.edge[valid])
+    band = BandPose(dof, parts, st.fit, res, wt, st.s, st.passes,
+                    calibrated=looks is not None, calibration_covers=covers,
+                    residual_within_edge_px=math.sqrt(s_w2),
                     residual_shared_per_edge_px=math.sqrt(s_u2))
-    R = rotation_from_euler_deg(*dof[:3])
     inl = w > 0.5
     rms = float(np.sqrt(np.mean(r[inl] ** 2))) if inl.any() else math.nan
-    est = PoseEstimate("dm+b", R, dof[3:].copy(), residual_px=rms,
-                       time_ms=(time.perf_counter() - t0) * 1e3, info={"band": band})
-    return est
+    # info: the tracker's copy until it reads the typed ``band`` and ``start``
+    return PoseEstimate("dm+b", rotation_from_euler_deg(*dof[:3]), dof[3:].copy(),
+                        residual_px=rms, time_ms=(time.perf_counter() - t0) * 1e3, band=band,
+                        start=start, info={"band": band, "start": start})
 
 
 def as_band_looks(edge_look) -> BandLooks | None:
@@ -481,25 +520,89 @@ def as_band_looks(edge_look) -> BandLooks | None:
 
 def refine_features(start: PoseEstimate, features, camera: Camera, model: Holder,
                     shapes=("round", "chamfer"), edge_look=None) -> PoseEstimate:
-    """``dm+b`` in the pipeline (:class:`~cutterpose.methods.Method` ``refine``): the bands of
-    every edge, in the image the features come from, from ``start`` (the outline's pose on the
-    field chain, ``dm+``'s on the paper's). Every edge is sampled whether or not the line fits
-    saw it: an edge under slurry or the cutter gives profiles that fit badly and weigh little
-    (the robust pose fit), and the answer does not depend on whether the corners were
-    detected at all (``measure`` skips them for ``dm+b``). ``edge_look``: a calibrated look
+    """``dm+b`` on the image's features (:meth:`EdgeBand.refine`): the bands of every edge, in
+    the image the features come from, from ``start`` (the outline's pose on the field chain,
+    ``dm+``'s on the paper's). Every edge is sampled whether or not the line fits saw it: an
+    edge under slurry or the cutter gives profiles that fit badly and weigh little (the robust
+    pose fit), and the answer does not depend on whether the corners were detected at all
+    (``measure`` skips them for ``dm+b``). ``edge_look``: a calibrated look
     (:class:`~cutterpose.image.edge_band.BandLooks`, or anything with a ``band_looks()``
     giving one: the calibration file's object)."""
     if features.image is None:
         return PoseEstimate.failure("dm+b", "the features carry no image to measure the band in")
-    est = measure_band(features.image, camera, model, start, None, shapes,
-                       looks=as_band_looks(edge_look))
-    if est:
-        est.info["start"] = start
-    return est
+    return measure_band(features.image, camera, model, start, None, shapes,
+                        looks=as_band_looks(edge_look))
 
 
 def solve(points_px, camera: Camera, model: Holder) -> PoseEstimate:
-    """Registered ``dm+b`` on corners alone: the band needs the image, so this is a falsy
-    estimate that says so (use :func:`cutterpose.pipeline.measure`)."""
+    """``dm+b`` on corners alone: the band needs the image, so this is a falsy estimate that
+    says so (use :func:`cutterpose.pipeline.measure`)."""
     return PoseEstimate.failure("dm+b", "dm+b measures the band across the edges: it needs the "
                                 "image (cutterpose.pipeline.measure / `cutterpose measure`)")
+
+
+def outline_start(H_ideal_holder, camera: Camera, method: str = "outline"
+                  ) -> PoseEstimate | None:
+    """The pose of the pocket outline's homography (holder plane -> ideal px; Zhang's
+    decomposition, :func:`~cutterpose.geometry.pose.pose_from_plane_homography`) as a start,
+    or None when it is degenerate. Its residual is NaN: no corners were fitted."""
+    rt = pose_from_plane_homography(H_ideal_holder, camera.K)
+    if rt is None:
+        return None
+    return PoseEstimate(method, rt[0], np.asarray(rt[1], float))
+
+
+def band_budget(band: BandPose, dof, limits: QualityLimits) -> tuple[ErrorBudget, np.ndarray]:
+    """``dm+b``'s error budget at ``dof`` (the band fit's covariance parts, module doc) and its
+    residuals: (M, 2) vectors (ideal px) along the edge normals of the inlier segments (dm+b
+    has no corner residuals; they are also the budget's ``residuals_px``)."""
+    inl = band.weights > 0.5
+    r = band.residuals_px[inl, None] * band.fit.profiles.normals_ideal[inl]
+    budget = budget_from_dof_cov(band.cov_parts, dof, limits.grasp_point_mm, limits.tolerance,
+                                 band.radius_mm, residuals_px=r)
+    return budget, r
+
+
+def band_verdict(est: PoseEstimate, limits: QualityLimits) -> Quality:
+    """The verdict on a ``dm+b`` estimate made without image features (the tracker's
+    re-anchoring: :func:`measure_band` from a tracked pose): its residuals, working range and
+    error budget, as :func:`cutterpose.pipeline.measure_features` judges it."""
+    if not est:
+        return verdict(est, None, limits)
+    if est.band is None:
+        return Quality(False, f"{est.method} carries no band fit to judge")
+    return verdict(est, band_budget(est.band, est.pose.dof, limits)[0], limits)
+
+
+class EdgeBand(RefinementMethod):
+    """``dm+b`` (module doc): the design edge's pose from the band across every edge, from the
+    pocket outline's pose (the field chain; no corners needed) or ``dm+``'s."""
+
+    name = "dm+b"
+    description = ("the band across every edge fitted with the edge model from the outline's "
+                   "pose (dm+'s on the paper's chain): the design edge's pose (needs the image)")
+    base = DmPlus
+    needs_corners = False
+    reanchors = True
+    solve = staticmethod(solve)
+
+    def first_start(self, features, camera) -> PoseEstimate | None:
+        """The outline's pose (field chain): the band needs a start within a few pixels,
+        which the outline fit gives without corners."""
+        if features.order != "holder" or features.H_ideal_holder is None:
+            return None
+        return outline_start(features.H_ideal_holder, camera)
+
+    def refine(self, start, features, camera, holder, context) -> PoseEstimate:
+        return refine_features(start, features, camera, holder,
+                               context.limits.edge_shape_fits, edge_look=context.edge_look)
+
+    def budget(self, estimate, features, camera, holder, limits) -> ErrorBudget:
+        return band_budget(estimate.band, estimate.pose.dof, limits)[0]
+
+    def reanchor(self, image, camera, holder, start, edges_seen, limits, passes=None,
+                 looks=None) -> tuple[PoseEstimate, Quality]:
+        """The band fit from a tracked ``start`` (:func:`measure_band`) and its verdict."""
+        est = measure_band(image, camera, holder, start, edges_seen, limits.edge_shape_fits,
+                           passes, looks=looks)
+        return est, band_verdict(est, limits)

@@ -369,7 +369,7 @@ def fit_pose_radius(dof0, ideal_px: np.ndarray, camera: Camera, holder: Holder,
 def _assigned(est: PoseEstimate, ideal_px: np.ndarray, camera: Camera, holder: Holder):
     """Detected corners in model order: the solver's assignment, else the nearest one-to-one
     assignment to the estimate's projection."""
-    col = est.info.get("assignment")
+    col = est.assignment
     if col is None or len(col) != holder.n_corners or len(ideal_px) != holder.n_corners:
         R, t = np.asarray(est.R_cam_holder, float), np.asarray(est.t_cam_holder_mm, float)
         X = holder.points_holder_mm @ R.T + t
@@ -383,8 +383,8 @@ def refine_radius(est: PoseEstimate, ideal_px: np.ndarray, camera: Camera, holde
                   name: str = "dm+r", shapes=("round", "chamfer"),
                   ordered: bool = False, tabulated: bool | None = None) -> PoseEstimate:
     """The refinement step after a solver: ``est`` -> the design-edge pose and the radius
-    (``info["edge_radius_mm"]``, ``info["radius_fit"]`` the :class:`RadiusFit`), fitted for
-    each edge ``shapes`` and the better kept (``info["edge_shape"]``).
+    (``radius_fit``: the :class:`RadiusFit`; ``info["edge_radius_mm"]``), fitted for each
+    edge ``shapes`` and the better kept (``info["edge_shape"]``).
 
     ``ordered``: ``ideal_px`` is already in model order (the field chain), NaN rows for the
     corners not seen, which the fit leaves out; else the solver's assignment orders them.
@@ -448,14 +448,15 @@ def refine_radius(est: PoseEstimate, ideal_px: np.ndarray, camera: Camera, holde
     # the corners cannot tell the shapes apart, that depth range is part of the uncertainty
     fit.profile = list(fit.profile) + [row for i, sc in enumerate(scans) if i != k
                                        for row in sc[2]]
-    info = dict(est.info, edge_radius_mm=fit.radius_mm, radius_fit=fit,
-                edge_shape=fit.table.look.shape, shape_costs=dict(zip(shapes, cost)),
-                radius_iterations=fit.iterations, start_dof=dof0.tolist())
+    info = dict(est.info, edge_radius_mm=fit.radius_mm, edge_shape=fit.table.look.shape,
+                shape_costs=dict(zip(shapes, cost)), radius_iterations=fit.iterations,
+                start_dof=dof0.tolist())
     pose = Pose.from_euler(*fit.dof)
     return PoseEstimate(method=name, R_cam_holder=pose.R, t_cam_holder_mm=pose.t_mm,
                         residual_px=fit.rms_px, candidates=est.candidates,
                         time_ms=(est.time_ms if math.isfinite(est.time_ms) else 0.0)
-                        + (time.perf_counter() - t0) * 1e3, info=info)
+                        + (time.perf_counter() - t0) * 1e3, info=info,
+                        assignment=est.assignment, radius_fit=fit)
 
 
 def refine_features(start: PoseEstimate, features, camera: Camera, model: Holder,
@@ -475,7 +476,7 @@ def refine_features(start: PoseEstimate, features, camera: Camera, model: Holder
 
 def solve(points_px, camera: Camera, model: Holder) -> PoseEstimate:
     """Registered method ``dm+r``: ``dm+`` (synthetic motion range) + :func:`refine_radius`."""
-    from .matching import solve_dm_plus
+    from .dm import solve_dm_plus
 
     est = solve_dm_plus(points_px, camera, model)
     ideal = camera.undistort_px(np.asarray(points_px, float))

@@ -36,7 +36,19 @@ class PoseEstimate:
         two-fold ambiguity); NaN when the solver produced a single candidate.
     candidates : every admissible candidate as ``(R, t)``, best first.
     time_ms : wall time of the solve.
-    info : solver-specific diagnostics (counts, iterations...).
+    info : solver-specific diagnostics for people (counts, iterations...); no caller reads
+        what it needs from it: the evidence a method's budget or the tracker uses is typed
+        below.
+    assignment : the corners' one-to-one assignment (``dm+``): per model corner the index of
+        its detected corner (a full set), or ``(k, 2)`` rows ``(model, detected)`` of a
+        partial one; None when the method made none.
+    start : the estimate a refinement started from (``dm+b``: the outline's or ``dm+``'s pose),
+        or None.
+    start_failed : why a refinement's first start (the outline's pose) gave no pose, when it
+        then started from the corners' pose ('' otherwise).
+    band : ``dm+b``'s band fit (:class:`cutterpose.solvers.edge_band.BandPose`), else None.
+    radius_fit : ``dm+r``'s radius fit (:class:`cutterpose.solvers.edge_radius.RadiusFit`),
+        else None.
     """
 
     method: str
@@ -48,6 +60,11 @@ class PoseEstimate:
     candidates: list = field(default_factory=list)
     time_ms: float = math.nan
     info: dict = field(default_factory=dict)
+    assignment: list | None = None
+    start: PoseEstimate | None = None
+    start_failed: str = ""
+    band: object | None = None
+    radius_fit: object | None = None
 
     @property
     def ok(self) -> bool:

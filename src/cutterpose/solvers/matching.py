@@ -78,11 +78,10 @@ from ..geometry.pose import rotation_from_euler_deg
 from ..geometry.working_range import MotionRange, PoseOutOfRangeError, pose_dof
 from .estimate import PoseEstimate
 from .pnp.base import as_points_px
-from .vanishing import check_contour, initial_pose, initial_pose_paper
+from .vanishing import check_contour
 
 __all__ = ["DistanceImage", "distance_image", "dm_score", "TemplateLibrary", "distance_match",
-           "refine_continuous", "refine_from_close_start", "solve_dm", "solve_dm_plus",
-           "PAPER_STEPS"]
+           "refine_continuous", "refine_from_close_start", "PAPER_STEPS"]
 
 #: The paper's coarse-to-fine steps (mm and deg).
 PAPER_STEPS = (5.0, 1.0, 0.5, 0.2, 0.1)
@@ -310,6 +309,52 @@ def _hill_climb(center: np.ndarray, score0: float, step: float, scorer: _Scorer,
     return center, score0
 
 
+def _start_dofs(initial, rng: MotionRange, slack: float, n_starts: int) -> np.ndarray:
+    """(k, 6) the starts of :func:`distance_match` (``initial``'s candidates, up to
+    ``n_starts``) within ``slack`` of the motion range, clipped into it."""
+    if isinstance(initial, PoseEstimate):
+        if not initial:
+            raise InputError(f"the initial pose is a failure: {initial.reason}")
+        starts = initial.candidates or [(initial.R_cam_holder, initial.t_cam_holder_mm)]
+    else:
+        starts = [initial]
+    starts = starts[:max(1, n_starts)]
+    start_dof = pose_dof(np.array([np.asarray(R, float) for R, _ in starts]),
+                         np.array([np.asarray(t, float).reshape(3) for _, t in starts]))
+    excess = rng.excess(start_dof)
+    if not np.all(np.isfinite(start_dof)):
+        raise InputError("the initial pose holds NaN or inf")
+    if not np.any(excess <= slack):
+        raise PoseOutOfRangeError(
+            f"the initial pose lies outside the motion range ({excess.min():.2f} half widths "
+            f"beyond it; DOFs {np.round(start_dof[np.argmin(excess)], 2).tolist()})")
+    return np.clip(start_dof[excess <= slack], rng.lower, rng.upper)
+
+
+def _coarse_to_fine(start_dof, scorer, dimg, camera: Camera, holder: Holder, steps,
+                    coarse_radius: int, library) -> tuple[np.ndarray, float]:
+    """The coarse-to-fine search (module doc): the best pose (dof) and its score (px)."""
+    # coarse level: a wide window (or the offline library) around every start, then 3^6
+    results = []
+    for c in start_dof:
+        if library is not None:
+            idx = library.window(c, coarse_radius + 0.5)   # the grid nodes of a 3^6 block
+            cand = np.concatenate([c[None], library.dof[idx]])
+            d = dimg.sample(np.concatenate([project_templates(c[None], camera, holder),
+                                            library.templates_px[idx]]))
+            s = np.sqrt(np.mean(d.astype(float) ** 2, axis=-1))
+            scorer.n_eval += len(cand)
+        else:
+            cand = c + steps[0] * (_OFF2 if coarse_radius >= 2 else _OFF1)
+            s = scorer(cand)
+        i = int(np.argmin(s))
+        results.append(_hill_climb(cand[i], float(s[i]), steps[0], scorer))
+    center, best = min(results, key=lambda r: r[1])
+    for step in steps[1:]:
+        center, best = _hill_climb(center, best, step, scorer)
+    return center, best
+
+
 def distance_match(points_px, camera: Camera, holder: Holder, initial,
                    motion_range: MotionRange | None = None, refine: bool = False,
                    steps=PAPER_STEPS, coarse_radius: int = 1, n_starts: int = 1,
@@ -368,44 +413,11 @@ def distance_match(points_px, camera: Camera, holder: Holder, initial,
     ideal = camera.undistort_px(x)
     if not np.all(np.isfinite(ideal)):
         raise InputError("points_px lie outside the camera's valid distortion domain")
-    if isinstance(initial, PoseEstimate):
-        if not initial:
-            raise InputError(f"the initial pose is a failure: {initial.reason}")
-        starts = initial.candidates or [(initial.R_cam_holder, initial.t_cam_holder_mm)]
-    else:
-        starts = [initial]
-    starts = starts[:max(1, n_starts)]
-    start_dof = pose_dof(np.array([np.asarray(R, float) for R, _ in starts]),
-                         np.array([np.asarray(t, float).reshape(3) for _, t in starts]))
-    excess = rng.excess(start_dof)
-    if not np.all(np.isfinite(start_dof)):
-        raise InputError("the initial pose holds NaN or inf")
-    if not np.any(excess <= slack):
-        raise PoseOutOfRangeError(
-            f"the initial pose lies outside the motion range ({excess.min():.2f} half widths "
-            f"beyond it; DOFs {np.round(start_dof[np.argmin(excess)], 2).tolist()})")
-    start_dof = np.clip(start_dof[excess <= slack], rng.lower, rng.upper)
-
+    start_dof = _start_dofs(initial, rng, slack, n_starts)
     dimg = distance_image(x, mask=dt_mask, bilinear=bilinear)
     scorer = _Scorer(dimg, camera, holder, rng, truncate_px)
-    # coarse level: a wide window (or the offline library) around every start, then 3^6
-    results = []
-    for c in start_dof:
-        if library is not None:
-            idx = library.window(c, coarse_radius + 0.5)   # the grid nodes of a 3^6 block
-            cand = np.concatenate([c[None], library.dof[idx]])
-            d = dimg.sample(np.concatenate([project_templates(c[None], camera, holder),
-                                            library.templates_px[idx]]))
-            s = np.sqrt(np.mean(d.astype(float) ** 2, axis=-1))
-            scorer.n_eval += len(cand)
-        else:
-            cand = c + steps[0] * (_OFF2 if coarse_radius >= 2 else _OFF1)
-            s = scorer(cand)
-        i = int(np.argmin(s))
-        results.append(_hill_climb(cand[i], float(s[i]), steps[0], scorer))
-    center, best = min(results, key=lambda r: r[1])
-    for step in steps[1:]:
-        center, best = _hill_climb(center, best, step, scorer)
+    center, best = _coarse_to_fine(start_dof, scorer, dimg, camera, holder, steps,
+                                   coarse_radius, library)
     R, t = _poses(center)
     info = {"dm_score_px": best, "n_templates": scorer.n_eval, "n_starts": len(start_dof),
             "dm_dof": center.tolist()}
@@ -509,14 +521,15 @@ def refine_continuous(est: PoseEstimate, ideal_px: np.ndarray, camera: Camera, h
         assign = pairs
 
         R, t, rms = _lm_pose(R, t, P[rows], K, ideal_px[col])
-    info = dict(est.info, dm_plus_rounds=rounds, assignment=None if assign is None
-                else (assign[:, 1].tolist() if gate_px is None else assign.tolist()))
+    info = dict(est.info, dm_plus_rounds=rounds)
+    pairs = None if assign is None else (assign[:, 1].tolist() if gate_px is None
+                                         else assign.tolist())
     dof = pose_dof(R, t)
     if not np.all(np.isfinite(dof)) or motion_range.excess(dof) > slack:
         return PoseEstimate.failure("dm+", "the continuous refinement left the motion range",
-                                    info=info)
+                                    info=info, assignment=pairs)
     return PoseEstimate(method="dm+", R_cam_holder=R, t_cam_holder_mm=t, residual_px=rms,
-                        info=info)
+                        info=info, assignment=pairs)
 
 
 def refine_from_close_start(points_px, camera: Camera, holder: Holder, initial,
@@ -554,12 +567,12 @@ def refine_from_close_start(points_px, camera: Camera, holder: Holder, initial,
     start = PoseEstimate(method="dm+", R_cam_holder=R0, t_cam_holder_mm=t0_mm,
                          info={"start": "close", "start_dof": dof0.tolist()})
     est = refine_continuous(start, ideal, camera, holder, rng, slack=slack, gate_px=gate)
-    pairs = est.info.get("assignment")
+    pairs = est.assignment
     n_pairs = 0 if pairs is None else len(pairs)
     if est and (n_pairs != len(x) or not est.residual_px <= max_rms_px):
         est = PoseEstimate.failure("dm+", f"the close start did not converge ({n_pairs} of "
                                    f"{len(x)} corners paired, RMS {est.residual_px:.2f} px)",
-                                   info=est.info)
+                                   info=est.info, assignment=pairs)
     est.time_ms = (time.perf_counter() - t0) * 1e3
     return est
 
@@ -576,70 +589,3 @@ def _check_partial(x: np.ndarray, holder: Holder) -> np.ndarray:
         raise DegenerateInputError("all corners are collinear (or coincide): the holder's "
                                    "pose is not determined")
     return x
-
-
-# ---- registered methods --------------------------------------------------------------------
-def _search_range(motion_range: MotionRange) -> MotionRange:
-    """The initial pose's search range: the synthetic protocol's wide range, widened to cover
-    ``motion_range`` where it reaches beyond it (an approach from 900 mm)."""
-    wide = MotionRange()
-    lo = np.minimum(np.subtract(wide.center_dof, wide.half_width_dof), motion_range.lower)
-    hi = np.maximum(np.add(wide.center_dof, wide.half_width_dof), motion_range.upper)
-    return MotionRange(center_dof=tuple((lo + hi) / 2), half_width_dof=tuple((hi - lo) / 2))
-
-
-def _solve(points_px, camera: Camera, model: Holder, refine: bool,
-           paper_initial: bool = False, *, motion_range: MotionRange | None = None,
-           start=None, partial: bool = False, close_start_rms_px: float | None = None
-           ) -> PoseEstimate:
-    """The registered ``dm``, ``dm+``, ``dm-paper`` (:class:`~cutterpose.methods.Method`,
-    ``searches_range``). Without the keywords: the synthetic protocol's range. With them (the
-    pipeline): ``motion_range`` the rig's; ``start`` a close pose ``(R, t_mm)`` (the field
-    chain's outline homography): ``dm+`` refines from it directly when its check passes
-    (``close_start_rms_px``, :func:`refine_from_close_start`); a ``partial`` corner set
-    matches from ``start`` (or the range's centre); otherwise the initial pose (section 2.2)
-    searches the range widened by :func:`_search_range`."""
-    t0 = time.perf_counter()
-    name = "dm-paper" if paper_initial else ("dm+" if refine else "dm")
-
-    def done(est):
-        est.method = name
-        est.time_ms = (time.perf_counter() - t0) * 1e3
-        return est
-
-    if refine and start is not None and close_start_rms_px is not None:
-        est = refine_from_close_start(points_px, camera, model, start,
-                                      motion_range=motion_range, partial=partial,
-                                      max_rms_px=close_start_rms_px)
-        if est:
-            return done(est)
-    if partial:
-        return done(distance_match(points_px, camera, model, start, motion_range=motion_range,
-                                   refine=refine, partial=True))
-    first = initial_pose_paper if paper_initial else initial_pose
-    init = (first(points_px, camera, model) if motion_range is None
-            else first(points_px, camera, model, _search_range(motion_range)))
-    if not init:
-        return PoseEstimate.failure(name, f"initial pose: {init.reason}", info=init.info,
-                                    time_ms=(time.perf_counter() - t0) * 1e3)
-    est = distance_match(points_px, camera, model, init, motion_range=motion_range,
-                         refine=refine)
-    est.info["initial_dof"] = pose_dof(init.R_cam_holder, init.t_cam_holder_mm).tolist()
-    return done(est)
-
-
-def solve_dm(points_px, camera: Camera, model: Holder, **context) -> PoseEstimate:
-    """Registered method ``dm``: initial pose (sphere) + the paper's distance matching
-    (``context``: :func:`_solve`'s keywords)."""
-    return _solve(points_px, camera, model, refine=False, **context)
-
-
-def solve_dm_paper(points_px, camera: Camera, model: Holder, **context) -> PoseEstimate:
-    """Registered method ``dm-paper``: the paper as written, its own initial pose (image-plane
-    vanishing points, section 2.2) + its distance matching (section 2.3)."""
-    return _solve(points_px, camera, model, refine=False, paper_initial=True, **context)
-
-
-def solve_dm_plus(points_px, camera: Camera, model: Holder, **context) -> PoseEstimate:
-    """Registered method ``dm+``: ``dm`` + continuous one-to-one least-squares refinement."""
-    return _solve(points_px, camera, model, refine=True, **context)

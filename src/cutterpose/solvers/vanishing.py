@@ -64,9 +64,10 @@ from ..geometry.holder import Holder
 from ..geometry.pose import nearest_rotation
 from ..geometry.working_range import MotionRange, pose_dof
 from .estimate import PoseEstimate
+from .method import ContourMethod
 from .pnp.base import as_points_px
 
-__all__ = ["check_contour", "initial_pose",
+__all__ = ["Initial", "InitialPaper", "check_contour", "initial_pose",
            "initial_pose_paper", "solve", "solve_paper", "chamfer_rms_px",
            "direction_candidates", "sphere_directions", "paper_directions", "depth_from_area"]
 
@@ -336,3 +337,15 @@ def solve(points_px, camera: Camera, model: Holder) -> PoseEstimate:
 def solve_paper(points_px, camera: Camera, model: Holder) -> PoseEstimate:
     """Registered method ``initial-paper``."""
     return initial_pose_paper(points_px, camera, model)
+
+
+class Initial(ContourMethod):
+    name = "initial"
+    description = "initial pose from vanishing points and contour area (paper 2.2)"
+    solve = staticmethod(solve)
+
+
+class InitialPaper(ContourMethod):
+    name = "initial-paper"
+    description = "initial pose, the paper's image-plane vanishing-point median"
+    solve = staticmethod(solve_paper)

@@ -36,11 +36,12 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..method import CorrespondenceMethod
 from .base import Candidate, make_solver
 from .polysolve import MacaulaySolver, PolySystem, monomials, quadratic_form_gradient_map
 
-__all__ = ["solve", "aspnp_candidates", "stationary_points", "MU_EXPS", "l_matrices", "rbar",
-           "mu_of", "normalise_object"]
+__all__ = ["ASPnP", "solve", "aspnp_candidates", "stationary_points", "MU_EXPS", "l_matrices",
+           "rbar", "mu_of", "normalise_object"]
 
 # ---- the quaternion monomials shared with OPnP ---------------------------------------------
 
@@ -204,3 +205,9 @@ def _candidates(P: np.ndarray, m: np.ndarray) -> list[Candidate]:
 
 
 solve = make_solver("aspnp", _candidates, min_points=4)
+
+
+class ASPnP(CorrespondenceMethod):
+    name = "aspnp"
+    description = "ASPnP (Zheng et al. 2013)"
+    solve = staticmethod(solve)

@@ -43,6 +43,7 @@ from __future__ import annotations
 import numpy as np
 
 from ...errors import DegenerateInputError
+from ..method import CorrespondenceMethod
 from .base import (
     Candidate,
     is_planar,
@@ -53,7 +54,7 @@ from .base import (
     smallest_eigvecs,
 )
 
-__all__ = ["candidates", "homography_pose", "projection_dlt_pose", "solve"]
+__all__ = ["Dlt", "candidates", "homography_pose", "projection_dlt_pose", "solve"]
 
 
 def _normalising_transform(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -185,3 +186,9 @@ def candidates(P: np.ndarray, m: np.ndarray) -> list[Candidate]:
 
 
 solve = make_solver("dlt", candidates, min_points=4)
+
+
+class Dlt(CorrespondenceMethod):
+    name = "dlt"
+    description = "DLT (homography for planar points)"
+    solve = staticmethod(solve)

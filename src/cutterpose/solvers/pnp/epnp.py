@@ -93,6 +93,7 @@ from scipy.linalg.lapack import dgeev as _dgeev
 from scipy.linalg.lapack import dgesv as _dgesv
 
 from ...errors import DegenerateInputError
+from ..method import CorrespondenceMethod
 from .base import (
     Candidate,
     det3,
@@ -105,7 +106,7 @@ from .base import (
     svd_small,
 )
 
-__all__ = ["candidates", "solve"]
+__all__ = ["EPnP", "candidates", "solve"]
 
 _GN_ITERATIONS = 8
 _GN_AT_REST = 1e-14  # relative step below which Gauss-Newton has nothing left to do
@@ -681,3 +682,9 @@ def solve(points_px, camera, model):
 @lru_cache(maxsize=8)
 def _solver_for(f_px: float | None):
     return make_solver("epnp", partial(candidates, f_px=f_px), min_points=4)
+
+
+class EPnP(CorrespondenceMethod):
+    name = "epnp"
+    description = "EPnP (Lepetit et al. 2009)"
+    solve = staticmethod(solve)

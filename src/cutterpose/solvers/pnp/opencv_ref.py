@@ -15,6 +15,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from ..method import CorrespondenceMethod
 from .base import Candidate, is_planar, make_solver
 
 
@@ -61,3 +62,15 @@ def ippe_lm_candidates(P: np.ndarray, m: np.ndarray) -> list[Candidate]:
 
 solve_sqpnp = make_solver("opencv-sqpnp", sqpnp_candidates, min_points=3)
 solve_ippe_lm = make_solver("opencv-ippe-lm", ippe_lm_candidates, min_points=4)
+
+
+class OpenCVSQPnP(CorrespondenceMethod):
+    name = "opencv-sqpnp"
+    description = "OpenCV SQPnP (reference)"
+    solve = staticmethod(solve_sqpnp)
+
+
+class OpenCVIPPELM(CorrespondenceMethod):
+    name = "opencv-ippe-lm"
+    description = "OpenCV IPPE + solvePnPRefineLM: the ML reference"
+    solve = staticmethod(solve_ippe_lm)

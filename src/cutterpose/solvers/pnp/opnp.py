@@ -35,11 +35,12 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..method import CorrespondenceMethod
 from .aspnp import MU_EXPS, l_matrices, mu_of, normalise_object, rbar
 from .base import Candidate, make_solver
 from .polysolve import MacaulaySolver, PolySystem, monomials, quadratic_form_gradient_map
 
-__all__ = ["solve", "opnp_candidates", "stationary_points", "cost_matrix", "cost"]
+__all__ = ["OPnP", "solve", "opnp_candidates", "stationary_points", "cost_matrix", "cost"]
 
 _W_EXPS = np.vstack([np.zeros((1, 4), np.int64), MU_EXPS])  # w = (1, mu)
 _SUPPORT = monomials(4, 3, "odd")  # the 4 linear and 20 cubic monomials
@@ -134,3 +135,9 @@ def _candidates(P: np.ndarray, m: np.ndarray) -> list[Candidate]:
 
 
 solve = make_solver("opnp", _candidates, min_points=4)
+
+
+class OPnP(CorrespondenceMethod):
+    name = "opnp"
+    description = "OPnP (Zheng et al. 2013)"
+    solve = staticmethod(solve)

@@ -40,9 +40,10 @@ from scipy.optimize import least_squares
 
 from ...geometry.se3 import skew
 from ..estimate import PoseEstimate
+from ..method import CorrespondenceMethod, PoseMethod
 from .base import Candidate, is_planar, model_points, plane_frame, select
 
-__all__ = ["refine_pose", "planar_flip", "with_refinement"]
+__all__ = ["LMRefined", "refine_pose", "planar_flip", "with_refinement"]
 
 # merge refined candidates closer than this (same local minimum reached from two starts)
 _SAME_ROT = 1e-6     # max |R_a - R_b| entry
@@ -180,3 +181,21 @@ def with_refinement(base_solve: Callable[..., PoseEstimate], name: str) -> Calla
     solve.__name__ = f"solve_{name.replace('-', '_').replace('+', '_')}"
     solve.__doc__ = f"{name}: ``solve(points_px, camera, model) -> PoseEstimate``."
     return solve
+
+
+class LMRefined(CorrespondenceMethod):
+    """``<method>+lm``: a correspondence method followed by Levenberg-Marquardt on the pixel
+    reprojection error (:func:`with_refinement`)."""
+
+    def __init__(self, base: PoseMethod):
+        self.base_method = base
+        self.name = f"{base.name}+lm"
+        self.description = base.description + " + LM refinement"
+        self._solve = with_refinement(base.solve, self.name)
+
+    def solve(self, points_px, camera, model) -> PoseEstimate:
+        return self._solve(points_px, camera, model)
+
+    def __reduce__(self):
+        # the refined solver is a closure: rebuild it from the base method
+        return (LMRefined, (self.base_method,))

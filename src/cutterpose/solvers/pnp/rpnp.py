@@ -59,6 +59,7 @@ from typing import NamedTuple
 import numpy as np
 from scipy.linalg.lapack import dgeev as _dgeev
 
+from ..method import CorrespondenceMethod
 from .base import (
     Candidate,
     align_rigid_many,
@@ -68,7 +69,7 @@ from .base import (
     model_cache,
 )
 
-__all__ = ["candidates", "solve"]
+__all__ = ["RPnP", "candidates", "solve"]
 
 _COMPANION7 = np.zeros((7, 7))
 _COMPANION7[np.arange(1, 7), np.arange(6)] = 1.0  # the sub-diagonal of a degree-7 companion
@@ -358,3 +359,9 @@ def candidates(P: np.ndarray, m: np.ndarray) -> list[Candidate]:
 
 
 solve = make_solver("rpnp", candidates, min_points=4)
+
+
+class RPnP(CorrespondenceMethod):
+    name = "rpnp"
+    description = "RPnP (Li et al. 2012)"
+    solve = staticmethod(solve)
