@@ -29,12 +29,17 @@ lint: $(STAMP)
 MUTATE_JOBS ?= 1
 MUTATE_TARGETS ?= \
 	'cutterpose.budget.*' \
-	'cutterpose.pipeline.x__verdict__*' 'cutterpose.pipeline.x_band_budget__*' \
-	'cutterpose.pipeline.x_band_verdict__*' 'cutterpose.pipeline.x_edge_wear_effect__*' \
-	'cutterpose.pipeline.x_edge_break_effect__*' 'cutterpose.pipeline.x_fit_offset__*' \
-	'cutterpose.pipeline.x__least_squares_step__*' 'cutterpose.pipeline.x__noise_cov__*' \
-	'cutterpose.pipeline.x__pose_cov__*' 'cutterpose.pipeline.x_pose_std__*' \
-	'cutterpose.pipeline.x__corner_fit__*' 'cutterpose.pipeline.xǁQualityLimitsǁ*' \
+	'cutterpose.verdict.x_verdict__*' 'cutterpose.verdict.x__range_reason__*' \
+	'cutterpose.verdict.xǁQualityLimitsǁ*' \
+	'cutterpose.solvers.edge_band.x_band_budget__*' \
+	'cutterpose.solvers.edge_band.x_band_verdict__*' \
+	'cutterpose.solvers.corners.x_edge_wear_effect__*' \
+	'cutterpose.solvers.corners.x_edge_break_effect__*' 'cutterpose.solvers.corners.x_fit_offset__*' \
+	'cutterpose.solvers.corners.x__least_squares_step__*' 'cutterpose.solvers.corners.x__noise_cov__*' \
+	'cutterpose.solvers.corners.x__pose_cov__*' 'cutterpose.solvers.corners.x_pose_std__*' \
+	'cutterpose.solvers.corners.x__corner_fit__*' 'cutterpose.solvers.corners.x_corner_budget__*' \
+	'cutterpose.solvers.corners.x_corner_review__*' \
+	'cutterpose.solvers.radius_budget.*' \
 	'cutterpose.geometry.pose.*' \
 	'cutterpose.geometry.camera.xǁCameraǁ*' 'cutterpose.geometry.camera.xǁDivisionCameraǁ*' \
 	'cutterpose.geometry.camera.xǁPinholeCameraǁ*' \

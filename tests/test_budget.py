@@ -248,7 +248,7 @@ def test_edge_variation_recovers_the_simulated_spread(sigma_e, unseen):
     ``sigma_e`` and corner noise of 0.2 px, seen through the fit's residual projector; the mean
     of the estimate's square over 1500 draws is ``sigma_e^2`` (within 8 %); corners of weight
     0 carry no residual."""
-    from cutterpose.budget import edge_variation_mm
+    from cutterpose.solvers.radius_budget import edge_variation_mm
 
     rng = np.random.default_rng(5)
     n = 16
@@ -272,7 +272,7 @@ def test_edge_variation_recovers_the_simulated_spread(sigma_e, unseen):
 
 
 def test_edge_variation_is_zero_for_noise_alone_or_no_spare_residual():
-    from cutterpose.budget import edge_variation_mm
+    from cutterpose.solvers.radius_budget import edge_variation_mm
 
     rng = np.random.default_rng(6)
     fit, D = _linear_fit(rng, 16)
@@ -296,7 +296,7 @@ def test_radius_profile_cov_hand_computed():
     ``s^2 = c0 / (2 N - 7)`` with N the seen corners."""
     from types import SimpleNamespace
 
-    from cutterpose.budget import radius_profile_cov
+    from cutterpose.solvers.radius_budget import radius_profile_cov
 
     dof = np.array([1.0, 2.0, 3.0, 4.0, 5.0, 600.0])
     d = np.array([0.1, -0.2, 0.0, 0.3, 0.0, -1.5])

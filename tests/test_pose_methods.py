@@ -99,14 +99,16 @@ def _names_in(tree) -> set:
     return {n.attr for n in ast.walk(tree) if isinstance(n, ast.Attribute)}
 
 
-def test_the_pipeline_knows_no_method():
-    """``pipeline.py`` compares no string with a method's name and reads no ``info``."""
-    path = Path(cutterpose.__file__).parent / "pipeline.py"
-    tree = ast.parse(path.read_text())
+def test_the_pipeline_and_the_tracker_know_no_method():
+    """``pipeline.py`` and the tracker compare no string with a method's name and read no
+    ``info``: they ask the method object (fails on ``method == "dm+b"`` or ``est.info[...]``)."""
+    pkg = Path(cutterpose.__file__).parent
     names = set(methods.REGISTRY)
-    for node in ast.walk(tree):
-        if isinstance(node, ast.Compare):
-            consts = [c.value for c in [node.left, *node.comparators]
-                      if isinstance(c, ast.Constant)]
-            assert not names & set(consts), ast.unparse(node)
-    assert "info" not in _names_in(tree)
+    for path in [pkg / "pipeline.py", *sorted((pkg / "tracking").glob("*.py"))]:
+        tree = ast.parse(path.read_text())
+        for node in ast.walk(tree):
+            if isinstance(node, ast.Compare):
+                consts = [c.value for c in [node.left, *node.comparators]
+                          if isinstance(c, ast.Constant)]
+                assert not names & set(consts), (path.name, ast.unparse(node))
+        assert "info" not in _names_in(tree), path.name

@@ -74,19 +74,24 @@ class Station:
         in the robot's base frame with the grasp verdict (``.robot``: :meth:`locate`).
         ``holder``: another of the cell's holder models."""
         hol = holder or self.holder
+        if T_base_flange is not None:
+            self._check_robot_path()
         m = measure(image, self.camera, hol, self.method, self.params, self.limits,
                     edge_look=self.edge_look, corners=corners)
         if T_base_flange is not None:
             m.robot = self.locate(m, T_base_flange, holder=hol)
         return m
 
+    def _check_robot_path(self) -> None:
+        if self.handeye is None:
+            raise InputError("the base frame needs a hand-eye calibration (--handeye, or "
+                             "handeye in the cell file)")
+
     def locate(self, measurement: Measurement, T_base_flange, *, holder: Holder | None = None):
         """The robot path: ``measurement``'s holder and grasp frame in the base frame, with the
         covariance and the grasp verdict (:func:`cutterpose.robot.locate` with this station's
         hand-eye calibration, robot accuracy and grasp tolerance)."""
-        if self.handeye is None:
-            raise InputError("the base frame needs a hand-eye calibration (--handeye, or "
-                             "handeye in the cell file)")
+        self._check_robot_path()
         from .robot import locate
 
         return locate(measurement, self.handeye, T_base_flange, self.robot_accuracy,
@@ -114,7 +119,8 @@ def _loaded(obj, loader_module: str, loader: str):
 
 
 def build_station(camera=None, holder=None, method: str = "dm+b", *, chain: str = "field",
-                  distance_mm: float | None = None, limits: QualityLimits | dict | None = None,
+                  distance_mm: float | None = None, params: FeatureParams | None = None,
+                  limits: QualityLimits | dict | None = None,
                   edge_shape: str | None = None, edge_break_mm: float | None = None,
                   tolerance: Tolerance | None = None, edge_look=None, handeye=None,
                   robot_accuracy: RobotAccuracy | None = None,
@@ -130,6 +136,8 @@ def build_station(camera=None, holder=None, method: str = "dm+b", *, chain: str 
     chain : the image chain, ``"field"`` or ``"paper"`` (paper section 2.1).
     distance_mm : the camera-to-holder distance (None: the paper's 600 mm): the region search's
         scale and the working range's centre (unless ``limits`` gives ``range_center_dof``).
+    params : the image stage's parameters, when not those of ``chain`` at ``distance_mm``
+        (the tracker's approach parameters).
     limits : a :class:`QualityLimits`, or a dict of its fields (a cell file's
         ``[tolerances]``, its ``tolerance`` a dict of :class:`~cutterpose.budget.Tolerance`'s
         fields); ``edge_shape``, ``edge_break_mm`` and ``tolerance`` (the error budget's
@@ -164,7 +172,8 @@ def build_station(camera=None, holder=None, method: str = "dm+b", *, chain: str 
     except TypeError as e:
         raise InputError(f"quality limits: {e}") from None
     return Station(
-        camera=cam, holder=hol, method=method, params=station_params(cam, chain, distance_mm),
+        camera=cam, holder=hol, method=method,
+        params=params if params is not None else station_params(cam, chain, distance_mm),
         limits=lim,
         edge_look=_loaded(edge_look, "cutterpose.calibration.edge_look", "load_edge_look"),
         handeye=_loaded(handeye, "cutterpose.calibration.handeye", "load_handeye"),

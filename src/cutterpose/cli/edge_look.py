@@ -48,44 +48,28 @@ def calibrate_edge_look_cmd(
     the look's photometry fitted so that the measured band profiles put the design edge where
     the known pose does; then the design-edge shift at the known poses, generic vs calibrated."""
     import json
-    from pathlib import Path
 
-    from ..calibration.edge_look import (
-        calibrate_edge_look,
-        calibrate_offsets,
-        load_reference_images,
-        load_reference_set,
-        save_edge_look,
-        shift_at_truth,
+    from ..calibration.edge_look import save_edge_look
+    from ..calibration.edge_look_cell import (
+        EDGE_SHAPE_CHOICES,
+        calibrate_in_cell,
+        reference_images,
     )
-    from ..errors import InputError
 
-    if edge_shape not in ("unknown", "round", "chamfer", "truth"):
+    if edge_shape not in EDGE_SHAPE_CHOICES:
         fail(f"--edge-shape must be round, chamfer, unknown or truth, got {edge_shape!r}")
-    shape = edge_shape if edge_shape in ("round", "chamfer") else None
     if poses is None:
-        missing = [s for s in source if not (Path(s) / "truth.json").is_file()]
-        if missing:
-            raise InputError(f"{missing[0]}: not a rendered set (no truth.json); give rendered "
-                             "sets, or images and --poses")
-        refs = [r for s in source
-                for r in load_reference_set(s, limit=limit, use_shape=edge_shape == "truth")]
-        if shape is not None:
-            for r in refs:
-                r.shape = shape
+        refs = reference_images(source, edge_shape=edge_shape, limit=limit)
     else:
-        from ..geometry.holder import default_holder, load_holder
+        from ..geometry.holder import load_holder
         from ..robot.poses import read_poses
 
         if edge_shape == "truth":
             fail("--edge-shape truth needs a rendered set")
         ps = read_poses(poses, convention, length_unit, angle_unit, to_frame="cam",
                         from_frame="holder")
-        refs = load_reference_images(image_paths(source)[:limit], ps[:limit] if limit else ps,
-                                     camera_from_option(camera),
-                                     load_holder(holder) if holder else default_holder(), shape)
-    log(f"{len(refs)} reference images; fitting the look with the design edge at the known "
-        "poses")
+        refs = reference_images(image_paths(source), ps, camera_from_option(camera),
+                                load_holder(holder) if holder else None, edge_shape, limit)
     from rich.progress import Progress
 
     with Progress(transient=True, console=None) as bar:
@@ -95,14 +79,9 @@ def calibrate_edge_look_cmd(
             bar.update(task, description=f"fitting the look, round {k}", completed=n,
                        total=n_max)
 
-        cal = calibrate_edge_look(refs, progress=log, tick=tick, workers=workers)
-    if offsets:
-        log("the design-edge offset per shape at the known poses")
-        cal = calibrate_offsets(refs, cal)
-    log("checking: the design-edge shift at the known poses, generic and calibrated looks")
-    check = {"generic": shift_at_truth(refs), "calibrated": shift_at_truth(refs,
-                                                                            cal.band_looks())}
-    cal.report["shift_at_truth"] = check
+        cal = calibrate_in_cell(refs, offsets=offsets, workers=workers, progress=log,
+                                tick=tick)
+    check = cal.report["shift_at_truth"]
     save_edge_look(cal, out)
     if json_out:
         typer.echo(json.dumps(cal.to_dict(), indent=1))

@@ -87,15 +87,15 @@ def track_cmd(
     import numpy as np
 
     from ..frames import parse_raw_size
-    from ..geometry.holder import load_holder
-    from ..tracking import Tracker, TrackParams, approach_limits
+    from ..station import build_station
+    from ..tracking import Tracker, TrackParams, approach_limits, approach_params
 
     cam = camera_from_option(camera)
-    look = load_edge_look(edge_look)
-    limits = replace(approach_limits(), edge_break_mm=edge_break_mm)
+    station = build_station(cam, holder, method, params=approach_params(cam),
+                            limits=replace(approach_limits(), edge_break_mm=edge_break_mm),
+                            edge_look=load_edge_look(edge_look))
     tp = TrackParams() if anchor_lag is None else TrackParams(anchor_lag=anchor_lag)
-    tracker = Tracker(cam, load_holder(holder) if holder else None, method, limits=limits,
-                      filter=filter_, edge_look=look, track=tp)
+    tracker = Tracker.from_station(station, filter=filter_, track=tp)
     size = parse_raw_size(raw) if raw else None
     modes, times, anchors, beside = {}, [], 0, 0
     with tracker:

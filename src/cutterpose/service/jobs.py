@@ -114,13 +114,9 @@ def decode_image(data: bytes, fmt: str, size_px: tuple[int, int] | None,
 def init_worker(cell: Cell) -> Cell:
     """Worker initializer: the cell (camera, holders, limits) is loaded once per process; a
     first measurement of a blank image warms the imports and caches."""
-    from ..pipeline import measure
-
     w, h = cell.camera.image_size_px
     try:
-        measure(np.zeros((h, w), np.uint8), cell.camera, cell.holder(None), cell.method,
-                params=cell.feature_params(), limits=cell.limits,
-                edge_look=cell.edge_look)
+        cell.station.measure(np.zeros((h, w), np.uint8))
     except ImageError:
         pass  # a black image is refused: expected, the point was the imports
     return cell
@@ -141,14 +137,11 @@ def measure_job(cell: Cell, data: bytes, fmt: str, size_px, holder: str | None,
         ``image`` (``width_px``, ``height_px``), ``worker`` (``pid``, ``decode_ms``,
         ``measure_ms``).
     """
-    from ..pipeline import measure
-
     t0 = time.perf_counter()
     img = decode_image(data, fmt, size_px, tuple(cell.camera.image_size_px))
     t1 = time.perf_counter()
     hol = cell.holder(holder)
-    m = measure(img, cell.camera, hol, cell.method, params=cell.feature_params(),
-                limits=cell.limits, edge_look=cell.edge_look)
+    m = cell.station.measure(img, holder=hol)
     t2 = time.perf_counter()
     return {"measurement": m.to_dict(), "robot": robot_frame(m, cell, hol, flange_row),
             "image": {"width_px": int(img.shape[1]), "height_px": int(img.shape[0])},
@@ -162,14 +155,11 @@ def overlay_job(cell: Cell, path: str, fmt: str, size_px, holder: str | None,
     import cv2
 
     from ..overlay import draw_overlay
-    from ..pipeline import measure
-
     with open(path, "rb") as f:
         data = f.read()
     img = decode_image(data, fmt, size_px, tuple(cell.camera.image_size_px))
     hol = cell.holder(holder)
-    m = measure(img, cell.camera, hol, cell.method, params=cell.feature_params(),
-                limits=cell.limits, edge_look=cell.edge_look)
+    m = cell.station.measure(img, holder=hol)
     ok, buf = cv2.imencode(".png", draw_overlay(img, m, cell.camera, hol, width_px))
     if not ok:  # pragma: no cover - PNG encoding of a valid BGR image
         raise ImageError("could not encode the overlay")

@@ -87,7 +87,7 @@ class TrackSessions:
         """
         from dataclasses import replace
 
-        from ..tracking import Tracker, TrackParams, approach_limits
+        from ..tracking import Tracker, TrackParams, approach_limits, approach_params
 
         self.expire()
         name = holder or self.cell.default_holder
@@ -99,12 +99,13 @@ class TrackSessions:
                                          f"(service.max_tracks = {self.max_tracks}): close one "
                                          "(DELETE /v1/tracks/{id}) or wait "
                                          f"{self.idle_s:g} s for an idle one to expire")
-            # the approach's range and budget; what the cell file says of the edge
+            # the cell's station on an approach: the approach's image parameters, range and
+            # budget; what the cell file says of the edge
             limits = replace(approach_limits(), edge_break_mm=self.cell.limits.edge_break_mm,
                              edge_shape=self.cell.limits.edge_shape)
-            tracker = Tracker(self.cell.camera, self.cell.holder(name), self.cell.method,
-                              limits=limits, track=tp, filter=filter,
-                              edge_look=self.cell.edge_look)
+            station = replace(self.cell.station, holder=self.cell.holder(name),
+                              params=approach_params(self.cell.camera), limits=limits)
+            tracker = Tracker.from_station(station, track=tp, filter=filter)
             s = TrackSession(uuid.uuid4().hex, name, tracker,
                              datetime.now(UTC).isoformat(timespec="microseconds"))
             self._sessions[s.id] = s

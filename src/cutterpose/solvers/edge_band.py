@@ -505,10 +505,9 @@ def measure_band(image, camera: Camera, holder: Holder, start: PoseEstimate,
                     residual_shared_per_edge_px=math.sqrt(s_u2))
     inl = w > 0.5
     rms = float(np.sqrt(np.mean(r[inl] ** 2))) if inl.any() else math.nan
-    # info: the tracker's copy until it reads the typed ``band`` and ``start``
     return PoseEstimate("dm+b", rotation_from_euler_deg(*dof[:3]), dof[3:].copy(),
                         residual_px=rms, time_ms=(time.perf_counter() - t0) * 1e3, band=band,
-                        start=start, info={"band": band, "start": start})
+                        start=start)
 
 
 def as_band_looks(edge_look) -> BandLooks | None:
@@ -599,10 +598,3 @@ class EdgeBand(RefinementMethod):
 
     def budget(self, estimate, features, camera, holder, limits) -> ErrorBudget:
         return band_budget(estimate.band, estimate.pose.dof, limits)[0]
-
-    def reanchor(self, image, camera, holder, start, edges_seen, limits, passes=None,
-                 looks=None) -> tuple[PoseEstimate, Quality]:
-        """The band fit from a tracked ``start`` (:func:`measure_band`) and its verdict."""
-        est = measure_band(image, camera, holder, start, edges_seen, limits.edge_shape_fits,
-                           passes, looks=looks)
-        return est, band_verdict(est, limits)

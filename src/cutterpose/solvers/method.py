@@ -16,8 +16,8 @@ Every method has
   (its ``solve`` gets the corners in model order), ``needs_corners`` (the image stage must find
   the corners for it), ``refines_design_edge`` (its pose is the design edge's, beyond the
   innermost rise the corners follow: the tracker measures the tracked edges' offsets from it)
-  and ``reanchors`` (:meth:`reanchor`: it measures again from a tracked pose and the image
-  alone).
+  and ``reanchors`` (its design edge is measured again from a tracked pose and the image
+  alone, by the band fit: the tracker's re-anchors, :mod:`cutterpose.tracking.anchoring`).
 
 The families are small base classes: :class:`CorrespondenceMethod` (PnP: the corners with
 their model points), :class:`ContourMethod` (correspondence-free, the corners in contour order:
@@ -97,13 +97,6 @@ class PoseMethod:
                camera: Camera, holder: Holder, limits: QualityLimits) -> Quality:
         """The method's own checks after the common verdict (none by default)."""
         return quality
-
-    def reanchor(self, image, camera: Camera, holder: Holder, start: PoseEstimate,
-                 edges_seen, limits: QualityLimits, passes: int | None = None, looks=None
-                 ) -> tuple[PoseEstimate, Quality]:
-        """The pose measured again from a tracked ``start`` and the image alone, with its
-        verdict (only when ``reanchors``)."""
-        raise NotImplementedError(f"{self.name} does not measure from a tracked pose")
 
     def __repr__(self) -> str:
         return f"<pose method {self.name}>"

@@ -30,7 +30,6 @@ from ..geometry.pose import Pose, wrap_deg
 from ..image import FeatureParams
 from ..pipeline import (
     DOF_NAMES,
-    EDGE_SHAPE_FITS,
     Measurement,
     QualityLimits,
     band_verdict,
@@ -112,7 +111,7 @@ class Anchoring:
         # innermost rise), so it measures here, at the measured design pose, how far
         # each of them lies from the design edge (docs/tracking.md, "Broken edges")
         refines = self._refines
-        start = m.estimate.info.get("start") if refines and m.estimate else None
+        start = m.estimate.start if refines and m.estimate else None
         # the residual the tracked edges are held to: the corners' (dm+'s, for dm+b,
         # which starts from the outline and fits no corners itself)
         rms = start.residual_px if start is not None else m.quality.rms_px
@@ -205,9 +204,9 @@ class Anchoring:
                 self._set_offsets(m.pose, lines, seen, m.std_dof, k, 1.0)
 
     def _anchor_due(self, pose: Pose, k: int) -> bool:
-        """A re-anchor on this tracked frame (``dm+b`` only: its band fit needs nothing but
-        the image and a close pose)?"""
-        if self.method != "dm+b" or self._pending is not None or \
+        """A re-anchor on this tracked frame (a method that ``reanchors``, ``dm+b``: its band
+        fit needs nothing but the image and a close pose)?"""
+        if not self._method.reanchors or self._pending is not None or \
                 self._pending_full is not None:
             return False
         tp = self.tp
@@ -228,7 +227,7 @@ class Anchoring:
     def _band_args(self, pose: Pose, edges_used: np.ndarray) -> tuple:
         """The arguments of :func:`band_fit` after the image (all picklable)."""
         return (self.camera, self.holder, pose, edges_used,
-                EDGE_SHAPE_FITS[self.limits.edge_shape], self.tp.anchor_passes,
+                self.limits.edge_shape_fits, self.tp.anchor_passes,
                 as_band_looks(self.edge_look), self.limits)
 
     def _band_fit(self, img: np.ndarray, pose: Pose, edges_used: np.ndarray):
@@ -256,7 +255,7 @@ class Anchoring:
                     "wrong"), ""
         self._set_offsets(band, lines, edges_used, std_band, frame,
                           max(self.tp.anchor_gain, 1.0 / (self._anchors + 1)),
-                          est.info.get("band"))
+                          est.band)
         return "", "re-anchored"
 
     def _reanchor(self, img: np.ndarray, res: TrackResult, timings: dict) -> TrackResult | str:

@@ -82,9 +82,10 @@ class Tracker(Prediction, LineStep, MovedModel, Anchoring):
         self.edge_look = edge_look
         self.holder = holder or default_holder()
         self.method = method
-        #: the method refines dm+'s pose beyond the corners (dm+b, dm+r): the tracker carries
-        #: its edges' offsets from the design edge
-        self._refines = get_method(method).base is not None
+        self._method = get_method(method)
+        #: the method's pose is the design edge's, beyond the innermost rise the corners follow
+        #: (dm+b, dm+r): the tracker carries its edges' offsets from the design edge
+        self._refines = self._method.refines_design_edge
         self.params = params or approach_params(self.camera)
         self.limits = limits or approach_limits()
         self.tp = (track or TrackParams()).for_camera(self.camera)
@@ -101,7 +102,7 @@ class Tracker(Prediction, LineStep, MovedModel, Anchoring):
         # once per process): built now, before the first frame arrives
         prepare_outline_search(self.camera, self.holder, self.params)
         if anchor_worker == "process" and self.tp.anchor_lag > 0 and (
-                method == "dm+b" or self.tp.defer_fallbacks):
+                self._method.reanchors or self.tp.defer_fallbacks):
             # started now: the spawn and its imports (~1 s) run beside the first frame's full
             # measurement instead of delaying the first re-anchor
             w, h = self.camera.image_size_px
@@ -150,6 +151,15 @@ class Tracker(Prediction, LineStep, MovedModel, Anchoring):
         except Exception:  # noqa: BLE001 - a timeout or a dead worker: not ready
             return False
         return True
+
+    @classmethod
+    def from_station(cls, station, track: TrackParams | None = None, filter: bool = False,
+                     anchor_worker: str = "process") -> Tracker:
+        """A tracker at a measuring station (:class:`cutterpose.station.Station`: its camera,
+        holder, method, image parameters, limits and edge look; for an approach build it with
+        ``params=approach_params(camera)`` and ``limits=approach_limits()``)."""
+        return cls(station.camera, station.holder, station.method, station.params,
+                   station.limits, track, filter, station.edge_look, anchor_worker)
 
     def close(self) -> None:
         """End the deferred re-anchors' worker (process or thread), if one was started."""
