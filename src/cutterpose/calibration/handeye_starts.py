@@ -35,7 +35,7 @@ OPENCV_METHODS = {
     "shah": ("calibrateRobotWorldHandEye", "CALIB_ROBOT_WORLD_HAND_EYE_SHAH"),
     "li": ("calibrateRobotWorldHandEye", "CALIB_ROBOT_WORLD_HAND_EYE_LI"),
 }
-#: the same ideas in numpy, always run (OpenCV 5.0.0.93's Python bindings lack the above)
+#: the same ideas in numpy, always run (OpenCV 5.0.0.93's bindings lacked the above)
 NUMPY_METHODS = ("tsai", "park", "shah")
 MIN_PAIR_ROTATION_DEG = 2.0
 
