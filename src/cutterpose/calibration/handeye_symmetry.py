@@ -27,7 +27,7 @@ References:
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -48,6 +48,7 @@ class OrderChoice:
 
     labels: np.ndarray
     margins: np.ndarray
+    names: list = field(default_factory=list)  #: what each label means ("as detected", ...)
 
 
 def screw_invariants(R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
