@@ -151,8 +151,8 @@ class ChessboardTarget(Target):
 def _find_chessboard(gray: np.ndarray, pattern, max_side: int = 1600):
     """Inner corners (N, 1, 2) in OpenCV's order, or None.
 
-    ``findChessboardCornersSB`` (with ``CALIB_CB_ACCURACY``; ``CALIB_CB_NORMALIZE_IMAGE``
-    only as a fallback, its histogram equalisation moves corners by ~0.03 px) on a copy of at
+    ``findChessboardCornersSB`` (``CALIB_CB_NORMALIZE_IMAGE`` only as a fallback, its
+    histogram equalisation moves corners by ~0.03 px) on a copy of at
     most ``max_side`` pixels, then ``cv2.cornerSubPix`` at full resolution (below). The
     classic ``findChessboardCorners`` is the last resort.
     """
@@ -163,8 +163,13 @@ def _find_chessboard(gray: np.ndarray, pattern, max_side: int = 1600):
     small = gray if scale == 1.0 else cv2.resize(gray, (round(w * scale), round(h * scale)),
                                                  interpolation=cv2.INTER_AREA)
     found, corners = False, None
-    acc = cv2.CALIB_CB_EXHAUSTIVE | cv2.CALIB_CB_ACCURACY
-    for flags in (acc, acc | cv2.CALIB_CB_NORMALIZE_IMAGE):
+    # plain first (a failed search with CALIB_CB_ACCURACY costs seconds; cornerSubPix below
+    # refines as well); the slow exhaustive search only when OpenCV's quick check sees a board
+    tries = [0, cv2.CALIB_CB_NORMALIZE_IMAGE]
+    if cv2.checkChessboard(small, pattern):
+        tries += [cv2.CALIB_CB_EXHAUSTIVE | cv2.CALIB_CB_ACCURACY,
+                  cv2.CALIB_CB_EXHAUSTIVE | cv2.CALIB_CB_ACCURACY | cv2.CALIB_CB_NORMALIZE_IMAGE]
+    for flags in tries:
         found, corners = cv2.findChessboardCornersSB(small, pattern, flags=flags)
         if found:
             break
