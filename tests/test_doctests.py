@@ -15,6 +15,8 @@ MODULES = [
     "cutterpose.geometry.se3",        # skew, se3_exp, se3_log
     "cutterpose.frames",              # frame_from_buffer
     "cutterpose.tracking.tracker",    # Tracker (its example is skipped: it needs frames)
+    "cutterpose.station",             # build_station
+    "cutterpose.methods",             # get_method, what a method says of itself
 ]
 
 

@@ -9,6 +9,13 @@ reprojection error (:class:`cutterpose.solvers.pnp.refine.LMRefined`).
 A method with ``needs_correspondences = False`` (``initial``, ``dm``, ``dm+`` ...) receives the
 corners in contour order in ``solve`` but with an unknown start and direction, and must not rely
 on their order.
+
+>>> from cutterpose.methods import get_method
+>>> m = get_method("dm+b")
+>>> m.name, m.refines_design_edge, m.needs_corners
+('dm+b', True, False)
+>>> get_method("epnp+lm").description
+'EPnP (Lepetit et al. 2009) + LM refinement'
 """
 
 from __future__ import annotations

@@ -14,6 +14,13 @@ measure the same way everywhere::
     m = station.measure("holder.png")                 # camera frame
     m = station.measure("holder.png", T_base_flange=flange_pose)   # + the base frame
 
+The station's limits and image parameters follow from its arguments:
+
+>>> from cutterpose.station import build_station
+>>> s = build_station("table1", method="dm+", distance_mm=700, edge_break_mm=0)
+>>> s.method, s.limits.range_center_dof[5], s.limits.edge_break_mm, s.params.roi_depths_mm
+('dm+', 700.0, 0, (700.0,))
+
 Convention:
     Poses as in :mod:`cutterpose.geometry.pose`; ``distance_mm`` the camera-to-holder distance
     of the station (the working range's centre and the region search's scale).

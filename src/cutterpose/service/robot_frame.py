@@ -38,9 +38,8 @@ def robot_frame(measurement, cell, holder, flange_row) -> dict:
         return {"available": False, "reason": "no flange pose in the request"}
     if cell.handeye is None:
         return {"available": False, "reason": "the cell file names no hand-eye file"}
-    from ..robot import locate, parse_pose_row
+    from ..robot import parse_pose_row
 
     T_base_flange = parse_pose_row(",".join(repr(float(x)) for x in flange_row))
-    res = locate(measurement, cell.handeye, T_base_flange, cell.robot_accuracy,
-                 camera=cell.camera, holder=holder, tolerance=cell.grasp_tolerance)
+    res = cell.station.locate(measurement, T_base_flange, holder=holder)
     return {"available": True, "reason": ""} | res.to_dict()
