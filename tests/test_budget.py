@@ -242,30 +242,31 @@ def _linear_fit(rng, n=12, weights=None):
     return SimpleNamespace(jacobian=J, weights=w), D
 
 
-@pytest.mark.parametrize("sigma_e, unseen", [(0.5, False), (0.3, True)])
-def test_edge_variation_recovers_the_simulated_spread(sigma_e, unseen):
+@pytest.mark.parametrize("sigma_e, weighted", [(0.5, False), (0.3, True)])
+def test_edge_variation_recovers_the_simulated_spread(sigma_e, weighted):
     """Method of moments against a simulation of its own model: per-edge offsets of std
-    ``sigma_e`` and corner noise of 0.2 px, seen through the fit's residual projector; the mean
-    of the estimate's square over 1500 draws is ``sigma_e^2`` (within 8 %); corners of weight
-    0 carry no residual."""
+    ``sigma_e`` and corner noise of ``0.3 / sqrt(w)`` px (``w`` the corner's weight), seen
+    through the weighted fit's residual projector; the mean of the estimate's square over 1500
+    draws is ``sigma_e^2`` (within 8 %); corners of weight 0 carry no residual."""
     from cutterpose.solvers.radius_budget import edge_variation_mm
 
     rng = np.random.default_rng(5)
     n = 16
     w = np.ones(n)
-    if unseen:
+    if weighted:
+        w = rng.choice([0.25, 1.0, 4.0], n)
         w[[3, 9]] = 0.0
     fit, D = _linear_fit(rng, n, w)
     keep = np.repeat(w > 0, 2)
+    sw = np.sqrt(np.repeat(w, 2))[keep]
     Jk = fit.jacobian[keep]
-    Q = np.eye(int(keep.sum())) - Jk @ np.linalg.pinv(Jk)
+    P = Jk @ np.linalg.pinv(sw[:, None] * Jk) * sw[None, :]     # weighted least squares
     est = []
     for _ in range(1500):
-        y = D @ rng.normal(0, sigma_e, n) + rng.normal(0, 0.2, 2 * n)
-        r = np.zeros(2 * n)
-        r[keep] = Q @ y[keep]
-        if unseen:   # what an unseen corner holds must not matter
-            r[~keep] = 50.0
+        noise = rng.normal(0, 0.3, 2 * n) / np.sqrt(np.maximum(np.repeat(w, 2), 1e-12))
+        y = (D @ rng.normal(0, sigma_e, n) + noise)[keep]
+        r = np.full(2 * n, 50.0)   # what an unseen corner holds must not matter
+        r[keep] = y - P @ y
         fit.residuals_px = r.reshape(n, 2)
         est.append(edge_variation_mm(fit, D))
     assert np.mean(np.square(est)) == pytest.approx(sigma_e ** 2, rel=0.08)
