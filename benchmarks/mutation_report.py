@@ -13,6 +13,28 @@ from __future__ import annotations
 import fnmatch
 import sys
 from collections import Counter, defaultdict
+from difflib import unified_diff
+
+
+def _functions(path) -> dict:
+    """name -> source of every function in mutmut's copy of ``path`` (the original as
+    ``<f>__mutmut_orig``, each mutant as ``<f>__mutmut_<n>``); parsed with ``ast`` (the file
+    holds every mutant: libcst would take minutes)."""
+    import ast
+    from pathlib import Path
+
+    text = (Path("mutants") / path).read_text()
+    lines = text.splitlines()
+    return {node.name: "\n".join(lines[node.lineno - 1:node.end_lineno])
+            for node in ast.walk(ast.parse(text))
+            if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef)}
+
+
+def _diff(functions: dict, name: str) -> str:
+    local = name.rsplit(".", 1)[-1]
+    orig = functions.get(local.rsplit("__mutmut_", 1)[0] + "__mutmut_orig", "")
+    lines = [ln for ln in (orig.splitlines(), functions.get(local, "").splitlines())]
+    return "\n".join(unified_diff(lines[0][1:], lines[1][1:], lineterm=""))
 
 
 def _changed_lines(diff: str) -> str:
@@ -25,7 +47,6 @@ def _changed_lines(diff: str) -> str:
 
 def main(patterns: list[str]) -> int:
     from mutmut.mutation.data import SourceFileMutationData
-    from mutmut.mutation.diff_apply import get_diff_for_mutant
     from mutmut.stats import status_by_exit_code
     from mutmut.utils.file_utils import walk_mutatable_files
 
@@ -34,6 +55,7 @@ def main(patterns: list[str]) -> int:
     for path in walk_mutatable_files():
         data = SourceFileMutationData(path=path)
         data.load()
+        functions = None
         for name, code in sorted(data.exit_code_by_key.items()):
             if patterns and not any(fnmatch.fnmatch(name, p) for p in patterns):
                 continue
@@ -41,8 +63,8 @@ def main(patterns: list[str]) -> int:
             func = name.rsplit("__mutmut_", 1)[0]
             counts[func][status] += 1
             if status not in ("killed", "caught by type check"):
-                diff = get_diff_for_mutant(name, path=path)
-                rows.append((name, status, _changed_lines(diff)))
+                functions = functions or _functions(path)      # parsed once per file
+                rows.append((name, status, _changed_lines(_diff(functions, name))))
     print("| function | mutants | killed | other |")
     print("| --- | ---: | ---: | --- |")
     for func, c in sorted(counts.items()):
