@@ -28,26 +28,25 @@ lint: $(STAMP)
 # table: mutants/survivors.md
 MUTATE_JOBS ?= 1
 MUTATE_TARGETS ?= \
-	'cutterpose.budget.*' \
-	'cutterpose.verdict.x_verdict__*' 'cutterpose.verdict.x__range_reason__*' \
-	'cutterpose.verdict.xǁQualityLimitsǁ*' \
-	'cutterpose.solvers.edge_band.x_band_budget__*' \
-	'cutterpose.solvers.edge_band.x_band_verdict__*' \
+	'cutterpose.budget.*' 'cutterpose.verdict.*' \
 	'cutterpose.solvers.corners.x_edge_wear_effect__*' \
-	'cutterpose.solvers.corners.x_edge_break_effect__*' 'cutterpose.solvers.corners.x_fit_offset__*' \
-	'cutterpose.solvers.corners.x__least_squares_step__*' 'cutterpose.solvers.corners.x__noise_cov__*' \
+	'cutterpose.solvers.corners.x_edge_break_effect__*' \
+	'cutterpose.solvers.corners.x__corner_fit__*' \
+	'cutterpose.solvers.corners.x__least_squares_step__*' \
+	'cutterpose.solvers.corners.x_fit_offset__*' 'cutterpose.solvers.corners.x__noise_cov__*' \
 	'cutterpose.solvers.corners.x__pose_cov__*' 'cutterpose.solvers.corners.x_pose_std__*' \
-	'cutterpose.solvers.corners.x__corner_fit__*' 'cutterpose.solvers.corners.x_corner_budget__*' \
-	'cutterpose.solvers.corners.x_corner_review__*' \
-	'cutterpose.solvers.radius_budget.*' \
-	'cutterpose.geometry.pose.*' \
-	'cutterpose.geometry.camera.xǁCameraǁ*' 'cutterpose.geometry.camera.xǁDivisionCameraǁ*' \
-	'cutterpose.geometry.camera.xǁPinholeCameraǁ*' \
+	'cutterpose.solvers.corners.x_corner_budget__*' \
+	'cutterpose.solvers.radius_budget.x_edge_variation_mm__*' \
+	'cutterpose.solvers.radius_budget.x_radius_profile_cov__*' \
+	'cutterpose.solvers.radius_budget.x_budget_from_fit__*' \
 	'cutterpose.solvers.edge_band.x_variance_components__*' \
 	'cutterpose.solvers.edge_band.x_edge_noise_cov__*' \
 	'cutterpose.solvers.edge_band.x__look_spread__*' \
-	'cutterpose.solvers.edge_radius.x_model_offset_spread__*' \
-	'cutterpose.solvers.edge_radius.x_per_edge_jacobian__*' \
+	'cutterpose.solvers.edge_band.x__calibration_parts__*' \
+	'cutterpose.solvers.edge_band.x_band_budget__*' 'cutterpose.solvers.edge_band.x_band_verdict__*' \
+	'cutterpose.geometry.pose.*' \
+	'cutterpose.geometry.camera.xǁCameraǁ*' 'cutterpose.geometry.camera.xǁDivisionCameraǁ*' \
+	'cutterpose.geometry.camera.xǁPinholeCameraǁ*' \
 	'cutterpose.robot.frames.*' 'cutterpose.robot.grasp.*' 'cutterpose.robot.locate.*' \
 	'cutterpose.calibration.handeye.x__to_own__*' 'cutterpose.calibration.handeye.x__verdict__*' \
 	'cutterpose.calibration.handeye.x_load_handeye__*' \

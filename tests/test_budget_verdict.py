@@ -20,8 +20,9 @@ from cutterpose.budget import Tolerance
 from cutterpose.geometry.holder import default_holder
 from cutterpose.geometry.pose import Pose
 from cutterpose.image import detect_features
-from cutterpose.pipeline import DOF_NAMES, QualityLimits, measure_features
+from cutterpose.pipeline import measure_features
 from cutterpose.render.analytic import render_holder
+from cutterpose.verdict import DOF_NAMES, QualityLimits
 from test_features import small_camera
 
 HOLDER = default_holder()
@@ -175,7 +176,7 @@ def test_edge_break_effect_is_the_refit_shift(cam_t1, offset_mm, unseen):
     """The pose shift a corner fit suffers when every edge is seen ``offset_mm`` outside the
     design edge: the linearised figure equals a non-linear re-fit to the moved corners'
     image (over the seen corners)."""
-    from cutterpose.pipeline import edge_break_effect
+    from cutterpose.solvers.corners import edge_break_effect
 
     pose = Pose.from_euler(4, -6, 8, 12, -9, 620)
     seen = np.ones(HOLDER.n_corners, bool)
@@ -191,7 +192,7 @@ def test_fit_offset_and_pose_std_against_a_refit(cam_t1):
     """``fit_offset``: the step from a pose to the corners' least-squares pose (a non-linear
     re-fit here); ``pose_std``: ``s^2 (J^T J)^-1`` with a finite-difference Jacobian and
     ``s^2 = |r|^2 / (2n - 6)``."""
-    from cutterpose.pipeline import fit_offset, pose_std
+    from cutterpose.solvers.corners import fit_offset, pose_std
 
     rng = np.random.default_rng(3)
     truth = Pose.from_euler(3, 5, -7, -10, 6, 610)
