@@ -2,7 +2,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test bench lint clean mutate
+.PHONY: demo test bench lint clean mutate fuzz
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || python3 -m venv $(VENV)
@@ -21,6 +21,12 @@ bench: $(STAMP)
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check src tests benchmarks
+
+# the input readers' fuzz tests with 50x their CI examples, random (docs/results/robustness.md);
+# a failure is printed with its input and kept in .hypothesis/ to replay
+fuzz: $(STAMP)
+	HYPOTHESIS_PROFILE=fuzz $(PY) -m pytest tests/test_fuzz_images.py tests/test_fuzz_files.py \
+		tests/test_fuzz_poses.py -q
 
 # mutation testing of the code that decides what the robot gets (docs/results/mutation.md):
 # mutmut 3 ([tool.mutmut] in pyproject.toml: the files and the fast test selection); one

@@ -9,6 +9,8 @@ settings from here and sets only ``max_examples`` and the like itself):
 * ``explore``: random examples and a local database, for hunting new failures by hand
   (``HYPOTHESIS_PROFILE=explore pytest tests/test_pose.py``); a failure found there is kept as
   an ``@example`` in the test.
+* ``fuzz`` (``make fuzz``): as ``explore``, and the fuzz tests of the input readers
+  (``tests/test_fuzz_*.py``) run 50 times their CI examples (``fuzz_support.examples``).
 """
 
 import os
@@ -22,6 +24,8 @@ from cutterpose import default_camera, default_holder
 settings.register_profile("ci", derandomize=True, database=None, deadline=None,
                           suppress_health_check=[HealthCheck.too_slow])
 settings.register_profile("explore", derandomize=False, deadline=None,
+                          suppress_health_check=[HealthCheck.too_slow])
+settings.register_profile("fuzz", derandomize=False, deadline=None,
                           suppress_health_check=[HealthCheck.too_slow])
 HYPOTHESIS_PROFILE = "ci" if os.environ.get("CI") else os.environ.get("HYPOTHESIS_PROFILE", "ci")
 settings.load_profile(HYPOTHESIS_PROFILE)

@@ -50,6 +50,7 @@ from typing import ClassVar
 import numpy as np
 
 from ..errors import InputError, ModelFileError
+from ..geometry.jsonfile import parse_error_text
 
 __all__ = ["TargetDetection", "Target", "TARGET_KINDS", "register_target", "target_from_spec",
            "target_from_dict", "load_target", "save_target", "symmetry_permutations",
@@ -319,9 +320,10 @@ def load_target(path) -> Target:
 
             d = yaml.safe_load(text)
     except (OSError, UnicodeDecodeError, ValueError) as e:
-        raise ModelFileError(f"{path}: cannot read the target file ({e})") from None
+        raise ModelFileError(f"{path}: cannot read the target file ({parse_error_text(e)})"
+                             ) from None
     except Exception as e:  # yaml.YAMLError without importing yaml at module level
-        raise ModelFileError(f"{path}: not valid YAML ({e})") from None
+        raise ModelFileError(f"{path}: not valid YAML ({parse_error_text(e)})") from None
     if isinstance(d, dict) and isinstance(d.get("target"), dict):
         d = d["target"]
     return target_from_dict(d, str(path))

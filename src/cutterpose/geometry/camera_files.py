@@ -52,7 +52,7 @@ from .camera import (
     check_image_size,
     matrix_field,
 )
-from .jsonfile import read_json
+from .jsonfile import parse_error_text, read_json
 
 __all__ = ["read_halcon", "write_halcon", "read_ros", "write_ros", "detect_format", "sniff_format",
            "write_camera", "load_camera", "save_camera",
@@ -242,7 +242,8 @@ def read_ros(path) -> Camera:
     try:
         d = yaml.safe_load(path.read_text())
     except (OSError, UnicodeDecodeError, yaml.YAMLError) as e:
-        raise CameraFileError(f"{path}: not a readable YAML file ({e})") from None
+        raise CameraFileError(f"{path}: not a readable YAML file ({parse_error_text(e)})"
+                              ) from None
     where = str(path)
     if not isinstance(d, dict):
         raise CameraFileError(f"{where}: expected a YAML map")
@@ -516,7 +517,11 @@ def convert_camera(cam: Camera, target_format: str,
 def _read_opencv_yaml(path: Path) -> Camera:
     import cv2
 
-    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+    try:
+        fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+    except (cv2.error, SystemError) as e:  # OpenCV's parser raises on malformed text
+        raise CameraFileError(f"{path}: not a readable OpenCV FileStorage file "
+                              f"({parse_error_text(e)})") from None
     if not fs.isOpened():
         raise CameraFileError(f"{path}: not a readable OpenCV FileStorage file")
     try:
@@ -537,6 +542,9 @@ def _read_opencv_yaml(path: Path) -> Camera:
         w = node("image_width").real()
         h = node("image_height").real()
         name = fs.getNode("name").string() if not fs.getNode("name").empty() else ""
+    except (cv2.error, SystemError) as e:  # a node of another shape than read (not a map)
+        raise CameraFileError(f"{where}: not an OpenCV camera file ({parse_error_text(e)})"
+                              ) from None
     finally:
         fs.release()
     K = matrix_field(K, "camera_matrix", where)

@@ -1,4 +1,5 @@
-"""Reading the package's JSON files (camera, holder, plate) with typed, file-naming errors."""
+"""Reading the package's JSON files (camera, holder, plate) with typed, file-naming errors,
+and the one-line reason of any parser's error (JSON, YAML, TOML) for the readers' messages."""
 
 from __future__ import annotations
 
@@ -23,3 +24,16 @@ def read_json(path, error: type[ModelFileError] = ModelFileError, what: str = "f
         raise error(f"{path}: not valid JSON ({e})") from None
     except OSError as e:
         raise error(f"{path}: cannot be read ({e.strerror})") from None
+
+
+def parse_error_text(e: Exception, limit: int = 240) -> str:
+    """A parser's error as one short line: ``line L, column C: problem`` for PyYAML's marked
+    errors (whose text spans several lines with a copy of the offending line), else the text
+    with its whitespace runs joined."""
+    mark, problem = getattr(e, "problem_mark", None), getattr(e, "problem", None)
+    if mark is not None and problem:
+        text = f"line {mark.line + 1}, column {mark.column + 1}: {problem}"
+    else:
+        text = str(e)
+    text = " ".join(text.split())
+    return text if len(text) <= limit else text[: limit - 3] + "..."

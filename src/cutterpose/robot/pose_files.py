@@ -93,8 +93,11 @@ def _number(d: dict, key: str, where: str) -> float:
         raise InputError(f"{where}: missing '{key}'")
     v = d[key]
     if isinstance(v, bool) or not isinstance(v, (int, float)):
-        raise InputError(f"{where}: '{key}' is not a number ({v!r})")
-    return float(v)
+        raise InputError(f"{where}: '{key}' is not a number ({repr(v)[:40]})")
+    try:
+        return float(v)
+    except OverflowError:
+        raise InputError(f"{where}: '{key}' is too large ({repr(v)[:40]})") from None
 
 
 def _ros_row(d, where: str) -> list[float]:
@@ -121,7 +124,7 @@ def _visp_row(d: dict, where: str) -> list[float]:
     data = d.get("data")
     try:
         row = [float(np.ravel(v)[0]) if np.size(v) == 1 else math.nan for v in data]
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         row = []
     if len(row) != 6 or not all(math.isfinite(v) for v in row):
         raise InputError(f"{where}: 'data' must hold 6 one-number rows [tx], [ty], [tz], [tux], "

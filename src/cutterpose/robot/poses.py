@@ -393,7 +393,10 @@ def _read_json(text: str, where: str, convention, length_unit, angle_unit):
         if conv_name is None:
             raise InputError(f"{where}: no pose convention; add \"convention\": NAME (one of "
                              f"{', '.join(CONVENTIONS)})")
-        rows = [np.ravel(np.asarray(p, float)) for p in poses] if poses else []
+        try:
+            rows = [np.ravel(np.asarray(p, float)) for p in poses] if poses else []
+        except (TypeError, ValueError, OverflowError):
+            raise InputError(f"{where}: every pose must be a list of numbers") from None
     if not rows:
         raise InputError(f"{where}: no poses in the file")
     try:
@@ -500,7 +503,11 @@ def load_flange_pose(spec: str, convention: str | None = None,
                      length_unit: str | None = None, angle_unit: str | None = None) -> Pose:
     """``T_base_flange`` from a one-row pose file or an inline PROTOCOL row."""
     p = Path(spec)
-    if p.suffix.lower() in (".csv", ".json", ".txt") or p.is_file():
+    try:
+        is_file = p.is_file()
+    except (OSError, ValueError):      # not a usable path (too long, NUL): an inline row
+        is_file = False
+    if p.suffix.lower() in (".csv", ".json", ".txt") or is_file:
         poses = read_poses(p, convention, length_unit, angle_unit)
         if len(poses) != 1:
             raise InputError(f"{spec}: a flange pose file must hold one pose, it holds "

@@ -38,13 +38,16 @@ def parse_flange_pose(value) -> list[float]:
     ValueError
         Not 7 finite numbers, translation beyond 100 m, or a quaternion far from unit norm.
     """
-    parts = value.split(",") if isinstance(value, str) else list(value)
+    try:
+        parts = value.split(",") if isinstance(value, str) else list(value)
+    except TypeError:
+        raise ValueError("flange_pose must be 7 numbers x_mm,y_mm,z_mm,qx,qy,qz,qw") from None
     if len(parts) != 7:
         raise ValueError(f"flange_pose needs 7 numbers x_mm,y_mm,z_mm,qx,qy,qz,qw, got "
                          f"{len(parts)}")
     try:
         v = [float(p) for p in parts]
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         raise ValueError("flange_pose: every element must be a number") from None
     if not all(math.isfinite(x) for x in v):
         raise ValueError("flange_pose: every element must be finite")
