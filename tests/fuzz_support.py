@@ -47,7 +47,7 @@ def typed_or_valid(fn, *args, **kwargs):
         msg = str(e).strip()
         assert msg, f"{type(e).__name__} without a message"
         assert "\n" not in msg, f"{type(e).__name__} message of several lines: {msg!r}"
-        assert len(msg) < 2000, f"{type(e).__name__} message of {len(msg)} characters"
+        assert len(msg) <= 1000, f"{type(e).__name__} message of {len(msg)} characters"
         out = e
     dt = time.perf_counter() - t0
     assert dt < TIME_S, f"{dt:.2f} s for one input"
@@ -108,12 +108,14 @@ def mutated(draw, doc, n_max: int = 3):
             parent = parent[k]
         key = path[-1]
         op = draw(st.sampled_from(["value", "value", "tree", "delete", "add"]))
+        # copies: a drawn value may be one of HOSTILE's lists or dicts, which a later
+        # mutation would otherwise change for every following example
         if op == "delete":
             del parent[key]
         elif op == "add" and isinstance(parent, dict):
-            parent[draw(st.text(max_size=8))] = draw(hostile_values)
+            parent[draw(st.text(max_size=8))] = copy.deepcopy(draw(hostile_values))
         else:
-            parent[key] = draw(hostile_values if op == "value" else json_trees)
+            parent[key] = copy.deepcopy(draw(hostile_values if op == "value" else json_trees))
     return doc
 
 

@@ -132,6 +132,7 @@ def test_slow_body_gets_408_and_the_connection_closed(server, image):
     sock.sendall(head(length=1000) + b"\x89PNG\r\n\x1a\n")
     status, data, dt = answer(sock)
     assert status == 408 and b"request_timeout" in data and 0.8 < dt < 3.0, (data, dt)
+    print(f"\nslow body: 408 after {dt:.2f} s")
     assert closed(sock, 3.0) is not None
     sock.close()
     sock = connect(server)
@@ -153,6 +154,7 @@ def test_slow_body_gets_408_and_the_connection_closed(server, image):
     status, data, _ = answer(sock)
     assert status == 408 and b"upload_timeout_s" in data, data
     assert 2.5 < time.perf_counter() - t0 < 5.0
+    print(f"trickled body: 408 after {time.perf_counter() - t0:.2f} s")
     sock.close()
     ready(server)
     good(server, image)
@@ -169,6 +171,8 @@ def test_stalled_head_and_silent_connections_are_closed(server, image):
         dt = closed(sock, 5.0)
         assert dt is not None and dt < 2.5, dt
         sock.close()
+    print(f"\nstalled head: closed; good request {server.last_s:.2f} s "
+          f"(normal {server.normal_s:.2f} s)")
     assert "no complete request head within 1 s" in log_text(server)
 
 
@@ -179,6 +183,8 @@ def test_many_idle_connections_do_not_block_a_good_request(server, image):
     idle = [connect(server) for _ in range(120)]
     ready(server)
     good(server, image)
+    print(f"\n120 idle connections: good request {server.last_s:.2f} s "
+          f"(normal {server.normal_s:.2f} s)")
     more = [connect(server) for _ in range(60)]       # 180 > 150
     at_once = [closed(s, 0.5) for s in more[-25:]]
     assert sum(dt is not None for dt in at_once) >= 20, at_once
@@ -203,6 +209,7 @@ def test_flood_beyond_the_queue_is_refused_and_no_200_is_lost(server, image):
     codes = [r.status_code for r in rs]
     assert set(codes) <= {200, 503} and codes.count(503) >= 5 and codes.count(200) >= 3, codes
     assert all(r.headers.get("retry-after") for r in rs if r.status_code == 503)
+    print(f"\nflood of 16: {codes.count(200)} x 200, {codes.count(503)} x 503")
     for r in rs:
         if r.status_code == 200:
             server.answered[r.json()["id"]] = r.json()
@@ -237,6 +244,7 @@ def test_oversize_head_is_refused(server, image):
     sock.sendall(head(extra=f"X-Junk: {'a' * 20000}\r\n", length=0))
     status, data, dt = answer(sock)
     assert status == 400 and dt < 2.0, data
+    print(f"\n20 KB head: 400 in {dt * 1e3:.0f} ms")
     assert closed(sock, 2.0) is not None
     sock.close()
     good(server, image)

@@ -7,9 +7,33 @@ surface as tracebacks.
 
 from __future__ import annotations
 
+#: the longest message an error carries (a value quoted from a file is cut in its middle)
+MAX_MESSAGE_CHARS = 600
+
+
+def one_line(text: str, limit: int = MAX_MESSAGE_CHARS) -> str:
+    """``text`` on one line (whitespace runs joined) and at most ``limit`` characters (the
+    middle cut out: a message that quotes a 10 000-character value from a hostile file keeps
+    its start, which names the file and field, and its end)."""
+    text = " ".join(str(text).split())
+    if len(text) <= limit:
+        return text
+    head = (2 * limit) // 3
+    return f"{text[:head]} [...] {text[-(limit - head - 7):]}"
+
 
 class CutterposeError(Exception):
-    """Base class of every expected failure in cutterpose."""
+    """Base class of every expected failure in cutterpose.
+
+    Its message is one line of at most :data:`MAX_MESSAGE_CHARS` characters (:func:`one_line`),
+    whatever the input it quotes: the CLI prints it as ``error: <message>``, the service as
+    the ``message`` of its answer.
+    """
+
+    def __init__(self, *args):
+        if args and isinstance(args[0], str):
+            args = (one_line(args[0]), *args[1:])
+        super().__init__(*args)
 
 
 class InputError(CutterposeError, ValueError):

@@ -132,7 +132,7 @@ class ChessboardTarget(Target):
             return cls(int(d["cols"]), int(d["rows"]), _positive(d["square_mm"], "square_mm"))
         except KeyError as e:
             raise ModelFileError(f"{where}: missing field {e}") from None
-        except (TypeError, ValueError, InputError) as e:
+        except (TypeError, ValueError, InputError, OverflowError) as e:
             raise ModelFileError(f"{where}: {e}") from None
 
     @classmethod
@@ -327,7 +327,7 @@ class CharucoTarget(Target):
                        float(d["marker_mm"]), str(d.get("dictionary", "DICT_5X5_100")))
         except KeyError as e:
             raise ModelFileError(f"{where}: missing field {e}") from None
-        except (TypeError, ValueError, InputError) as e:
+        except (TypeError, ValueError, InputError, OverflowError) as e:
             raise ModelFileError(f"{where}: {e}") from None
 
     @classmethod

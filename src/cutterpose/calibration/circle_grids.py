@@ -54,7 +54,7 @@ ORIGIN_DOT_MIN_AREA_RATIO = 1.3
 def _positive(v, what: str) -> float:
     try:
         x = float(v)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         raise InputError(f"{what} must be a number, got {v!r}") from None
     if not x > 0:
         raise InputError(f"{what} must be positive, got {v!r}")
@@ -288,7 +288,7 @@ class CircleGridTarget(Target):
                        bool(d.get("origin_dot", False)), _opt_float(d.get("origin_diameter_mm")))
         except KeyError as e:
             raise ModelFileError(f"{where}: missing field {e}") from None
-        except (TypeError, ValueError, InputError) as e:
+        except (TypeError, ValueError, InputError, OverflowError) as e:
             raise ModelFileError(f"{where}: {e}") from None
 
     @classmethod

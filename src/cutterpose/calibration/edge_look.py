@@ -739,7 +739,7 @@ def _matrix(d: dict, key: str, n: int, where: str) -> tuple:
     m = d.get(key)
     try:
         a = np.asarray(m, float)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         a = None
     if a is None or a.shape != (n, n) or not np.all(np.isfinite(a)):
         raise EdgeLookFileError(f"{where}: '{key}' must be a finite {n} x {n} matrix")

@@ -249,11 +249,11 @@ def load_handeye(path) -> HandEye:
             raise HandEyeFileError(f"{path}: missing field '{key}'")
         try:
             poses[key] = Pose.from_matrix(np.asarray(d[key], float), *frames)
-        except (InputError, TypeError, ValueError) as e:
+        except (InputError, TypeError, ValueError, OverflowError) as e:
             raise HandEyeFileError(f"{path}: field '{key}': {e}") from None
     try:
         C = np.asarray(d.get("covariance"), float)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         C = np.zeros(0)
     if C.shape != (6, 6) or not np.all(np.isfinite(C)):
         raise HandEyeFileError(f"{path}: field 'covariance' must be a finite 6x6 matrix")

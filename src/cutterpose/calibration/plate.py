@@ -195,7 +195,7 @@ class CirclePlate:
             fields["cols"] = int(fields["cols"])
             for k in set(fields) - {"rows", "cols"}:
                 fields[k] = float(fields[k])
-        except (TypeError, ValueError):
+        except (TypeError, ValueError, OverflowError):
             raise ModelFileError(f"{where}: plate fields must be numbers") from None
         if "diameter_mm" not in fields:
             fields["diameter_mm"] = 0.5 * fields["spacing_mm"]

@@ -482,7 +482,7 @@ def _check_positive_finite(values: dict, what: str):
 def _check_pair(v, field: str, positive: bool = False):
     try:
         a, b = (float(x) for x in v)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         raise CameraFileError(f"field '{field}' must be a pair of numbers, got {v!r}") from None
     if not (math.isfinite(a) and math.isfinite(b)):
         raise CameraFileError(f"field '{field}' must be finite, got {v!r}")
@@ -559,7 +559,7 @@ def camera_from_dict(d: dict, where: str = "camera") -> Camera:
         dist = _require(d, "distortion_coefficients", where)
         try:
             dist = np.asarray(dist, float).ravel()
-        except (TypeError, ValueError):
+        except (TypeError, ValueError, OverflowError):
             raise CameraFileError(
                 f"{where}: field 'distortion_coefficients' must be a list of numbers") from None
         return OpenCVCamera(K, dist, size, name=name)
@@ -578,7 +578,7 @@ def _number(v, field: str, where: str) -> float:
 def matrix_field(v, field: str, where: str) -> np.ndarray:
     try:
         K = np.asarray(v, float)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         raise CameraFileError(f"{where}: field '{field}' must be a 3x3 matrix of numbers") from None
     if K.size == 9:
         K = K.reshape(3, 3)

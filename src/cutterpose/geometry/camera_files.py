@@ -226,7 +226,7 @@ def _ros_matrix(d: dict, key: str, shape, where: str) -> np.ndarray:
         raise CameraFileError(f"{where}: missing field '{key}' (a {{rows, cols, data}} map)")
     try:
         a = np.asarray(node["data"], float).ravel()
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         raise CameraFileError(f"{where}: field '{key}.data' must be numbers") from None
     if shape is not None and a.size != int(np.prod(shape)):
         raise CameraFileError(f"{where}: field '{key}' needs {int(np.prod(shape))} values, "
@@ -542,7 +542,7 @@ def _read_opencv_yaml(path: Path) -> Camera:
         w = node("image_width").real()
         h = node("image_height").real()
         name = fs.getNode("name").string() if not fs.getNode("name").empty() else ""
-    except (cv2.error, SystemError) as e:  # a node of another shape than read (not a map)
+    except (cv2.error, SystemError, UnicodeDecodeError) as e:  # a node of another shape
         raise CameraFileError(f"{where}: not an OpenCV camera file ({parse_error_text(e)})"
                               ) from None
     finally:

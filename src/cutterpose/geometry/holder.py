@@ -151,7 +151,7 @@ def validate_corners(corners, where: str = "holder") -> np.ndarray:
     """
     try:
         c = np.asarray(corners, dtype=float)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         raise HolderModelError(
             f"{where}: field 'inner_contour_corners' must be a list of [x, y] numbers") from None
     if c.ndim != 2 or c.shape[1] not in (2, 3):
@@ -244,7 +244,7 @@ def _grasp_frame(g, where: str) -> Pose | None:
             e = np.asarray(g.get("euler_deg", [0.0, 0.0, 0.0]), float).reshape(3)
             return Pose.from_euler(*e, *np.asarray(g["position_mm"], float).reshape(3),
                                    to_frame="holder", from_frame="grasp")
-    except (InputError, TypeError, ValueError) as e:
+    except (InputError, TypeError, ValueError, OverflowError) as e:
         raise HolderModelError(f"{where}: field 'grasp_frame': {e}") from None
     raise HolderModelError(f"{where}: field 'grasp_frame' must hold 'T_holder_grasp' (4x4) or "
                            "'position_mm' (and optionally 'euler_deg')")

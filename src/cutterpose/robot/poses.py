@@ -210,7 +210,7 @@ def poses_from_rows(rows, convention: str, length_unit: str | None = None,
                          "(angle_unit, a '# angle_unit: deg' line or an rx_deg column)")
     try:
         a = np.asarray(rows, float)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         raise InputError("pose rows must be numbers") from None
     a = a.reshape(len(a), -1) if a.ndim > 1 else a.reshape(1, -1)
     if a.shape[1] != len(conv.columns):
@@ -383,6 +383,8 @@ def _read_json(text: str, where: str, convention, length_unit, angle_unit):
             raise InputError(f"{where}: no pose convention; add \"convention\": NAME (one of "
                              f"{', '.join(CONVENTIONS)})")
         cols = _convention(conv_name).columns
+        if not all(isinstance(p, dict) for p in poses):
+            raise InputError(f"{where}: every pose must be an object like the first one")
         lookup = [{_split_name(k)[0]: v for k, v in p.items()} for p in poses]
         missing = [c for c in cols if c not in lookup[0]]
         if missing:
@@ -401,7 +403,7 @@ def _read_json(text: str, where: str, convention, length_unit, angle_unit):
         raise InputError(f"{where}: no poses in the file")
     try:
         data = np.array(rows, float)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         raise InputError(f"{where}: every pose must have the same number of numbers") from None
     return data, conv_name, lu, au
 
