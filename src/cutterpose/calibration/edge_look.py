@@ -84,6 +84,7 @@ from scipy.optimize import minimize
 from ..errors import EdgeLookFileError, InputError
 from ..geometry.camera import Camera
 from ..geometry.holder import Holder
+from ..geometry.jsonfile import is_finite_number
 from ..geometry.pose import Pose
 from ..image import edge_model as em
 from ..image.edge_band import (
@@ -730,7 +731,7 @@ def save_edge_look(cal: EdgeLookCalibration, path) -> None:
 
 def _number(d: dict, key: str, where: str) -> float:
     v = d.get(key)
-    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not is_finite_number(v):
         raise EdgeLookFileError(f"{where}: '{key}' must be a finite number, got {v!r}")
     return float(v)
 
@@ -773,7 +774,7 @@ def edge_look_from_dict(d, where: str = "edge look") -> EdgeLookCalibration:
         raise EdgeLookFileError(f"{where}: 'parameters' must be {list(PARAM_NAMES)}")
     x = d.get("x")
     if (not isinstance(x, list) or len(x) != len(PARAM_NAMES)
-            or not all(isinstance(v, (int, float)) and math.isfinite(v) for v in x)):
+            or not all(isinstance(v, (int, float)) and is_finite_number(v) for v in x)):
         raise EdgeLookFileError(f"{where}: 'x' must be {len(PARAM_NAMES)} finite numbers")
     blurs = d.get("blurs_px")
     if (not isinstance(blurs, list) or not blurs or not all(
@@ -823,7 +824,7 @@ def _radius_ranges(d: dict, where: str) -> tuple:
     o = d.get("radius_range_mm", {})
     ok = isinstance(o, dict) and all(
         k in ("round", "chamfer") and isinstance(v, list) and len(v) == 2
-        and all(isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
+        and all(isinstance(x, (int, float)) and not isinstance(x, bool) and is_finite_number(x)
                 and x >= 0 for x in v) and v[0] <= v[1] for k, v in o.items())
     if not ok:
         raise EdgeLookFileError(f"{where}: 'radius_range_mm' must map 'round' / 'chamfer' to "
@@ -848,7 +849,7 @@ def _distance_range(d: dict, where: str) -> tuple[float, float] | None:
         return None
     if (not isinstance(v, list) or len(v) != 2
             or not all(isinstance(x, (int, float)) and not isinstance(x, bool)
-                       and math.isfinite(x) and x > 0 for x in v) or v[0] > v[1]):
+                       and is_finite_number(x) and x > 0 for x in v) or v[0] > v[1]):
         raise EdgeLookFileError(f"{where}: 'distance_range_mm' must be [near, far] in mm, "
                                 f"0 < near <= far, got {v!r}")
     return float(v[0]), float(v[1])
@@ -860,7 +861,7 @@ def _offsets(d: dict, key: str, where: str, bound_mm: float = 1.0) -> tuple:
     o = d.get(key, {})
     if not isinstance(o, dict) or not all(
             k in ("round", "chamfer") and isinstance(v, (int, float))
-            and not isinstance(v, bool) and math.isfinite(v) and abs(v) <= bound_mm
+            and not isinstance(v, bool) and is_finite_number(v) and abs(v) <= bound_mm
             for k, v in o.items()):
         raise EdgeLookFileError(f"{where}: '{key}' must map 'round' / 'chamfer' to finite "
                                 f"values within +-{bound_mm:g} mm")

@@ -11,14 +11,13 @@ Convention:
 from __future__ import annotations
 
 import json
-import math
 from dataclasses import dataclass, field
 from importlib import resources
 
 import numpy as np
 
 from ..errors import HolderModelError, InputError
-from .jsonfile import read_json
+from .jsonfile import is_finite_number, read_json
 from .pose import Pose
 
 __all__ = ["Holder", "load_holder", "default_holder", "holder_from_dict",
@@ -221,7 +220,7 @@ def holder_from_dict(d: dict, where: str = "holder") -> Holder:
     dims = []
     for key in ("length_x", "width_y"):
         v = rect.get(key)
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
+        if not is_finite_number(v) or v <= 0:
             raise HolderModelError(f"{where}: field 'outer_rectangle.{key}' must be a positive "
                                    f"number, got {v!r}")
         dims.append(float(v))

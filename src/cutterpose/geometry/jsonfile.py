@@ -4,6 +4,7 @@ and the one-line reason of any parser's error (JSON, YAML, TOML) for the readers
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 
 from ..errors import ModelFileError
@@ -37,3 +38,14 @@ def parse_error_text(e: Exception, limit: int = 240) -> str:
         text = str(e)
     text = " ".join(text.split())
     return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
+def is_finite_number(v) -> bool:
+    """``v`` is an int or float (not a bool) that a float holds finitely: False for NaN, inf,
+    ``10**400`` (where ``math.isfinite`` raises ``OverflowError``) and any other type."""
+    if isinstance(v, bool) or not isinstance(v, int | float):
+        return False
+    try:
+        return math.isfinite(v)
+    except OverflowError:
+        return False
