@@ -15,7 +15,7 @@ from hypothesis import strategies as st
 
 from cutterpose.errors import InputError
 from cutterpose.geometry.pose import Pose
-from cutterpose.robot.pose_files import read_pose_file
+from cutterpose.robot.pose_files import read_pose_file, read_pose_set
 from cutterpose.robot.poses import (
     CONVENTIONS,
     load_flange_pose,
@@ -153,3 +153,20 @@ def test_service_flange_pose_values(value):
         assert "\n" not in str(e)
     else:
         assert len(out) == 7 and all(math.isfinite(v) for v in out)
+
+
+@settings(max_examples=examples(30))
+@given(entries=st.lists(st.fixed_dictionaries(
+    {"pose": st.sampled_from(["3.yaml", "cal_data.yaml", "missing.yaml", "", "sub", "\x00",
+                              "../" * 40 + "x.yaml"]),
+     "image": st.one_of(st.none(), st.text(max_size=10))}), min_size=1, max_size=4),
+       pose=st.one_of(st.just(ROS), mutated(ROS)))
+def test_robot_cal_tools_data_sets(entries, pose):
+    """cal_data.yaml naming pose files: missing, empty, a folder, itself (a list that names
+    itself once recursed for ever), or a hostile pose."""
+    folder = TMP / "dataset"
+    (folder / "sub").mkdir(parents=True, exist_ok=True)
+    (folder / "3.yaml").write_text(yaml.safe_dump(pose))
+    (folder / "cal_data.yaml").write_text(yaml.safe_dump(entries))
+    with MemoryBound():
+        _check(typed_or_valid(read_pose_set, folder / "cal_data.yaml"))

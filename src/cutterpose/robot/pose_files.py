@@ -132,13 +132,16 @@ def _visp_row(d: dict, where: str) -> list[float]:
     return row
 
 
-def _read_yaml(path: Path, fmt: str, to_frame: str, from_frame: str):
+def _read_yaml(path: Path, fmt: str, to_frame: str, from_frame: str, in_data_set=False):
     doc = _load_yaml(path)
     where = str(path)
     if fmt == "auto":
         fmt = "visp-yaml" if isinstance(doc, dict) and "rows" in doc and "data" in doc \
             else "ros-yaml"
     if _is_data_set(doc):
+        if in_data_set:  # a list naming itself or another list would never end
+            raise InputError(f"{where}: a data set entry's pose file is itself a data set "
+                             "(a list of {pose, image}), not one pose")
         return _read_data_set(doc, path, to_frame, from_frame)
     if fmt == "visp-yaml":
         if not isinstance(doc, dict):
@@ -173,7 +176,7 @@ def _read_data_set(doc: list, path: Path, to_frame: str, from_frame: str):
         f = path.parent / d["pose"]
         if not f.is_file():
             raise InputError(f"{path}: entry {k}: pose file {d['pose']} not found")
-        one, _, _ = _read_yaml(f, "auto", to_frame, from_frame)
+        one, _, _ = _read_yaml(f, "auto", to_frame, from_frame, in_data_set=True)
         if len(one) != 1:
             raise InputError(f"{f}: a data set entry's pose file must hold one pose")
         poses.append(one[0])
