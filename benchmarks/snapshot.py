@@ -124,6 +124,12 @@ def compare(pa: str, pb: str) -> int:
                     diffs.append(f"budget {f}: {ba[f]} != {bb[f]}")
             if ba["parts"].keys() != bb["parts"].keys():
                 diffs.append("budget parts")
+            else:
+                for part, fa in ba["parts"].items():
+                    if not all(_close(x, y, 1e-9) for x, y in zip(fa, bb["parts"][part])):
+                        diffs.append(f"budget part {part}: {fa} != {bb['parts'][part]}")
+            if not all(_close(x, y, 1e-9) for x, y in zip(ba["cov"], bb["cov"])):
+                diffs.append("budget covariance")
         if diffs:
             bad += 1
             print(k, "; ".join(diffs)[:400])
