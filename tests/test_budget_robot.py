@@ -192,3 +192,26 @@ def test_inverse_covariance_against_sampling():
     s = np.sqrt(np.diag(inv))
     np.testing.assert_allclose(np.sqrt(np.diag(C)), s, rtol=0.03)
     assert np.abs(C / np.outer(s, s) - inv / np.outer(s, s)).max() < 0.03
+
+
+def test_measurement_covariance_uses_a_given_one_and_refuses_without_a_pose(cam_t1):
+    """A measurement that carries its DOF covariance (``cov_dof``) gives it unchanged; one
+    without a pose, or without a finite std, gives none; otherwise the std with the
+    correlations of ``(J^T J)^-1`` (the diagonal is the std's square)."""
+    from types import SimpleNamespace
+
+    from cutterpose.robot import measurement_covariance
+
+    pose = Pose.from_euler(2, -3, 4, 8, -6, 612)
+    C = np.diag([1e-4, 2e-4, 3e-4, 0.01, 0.02, 0.05])
+    C[1, 3] = C[3, 1] = 1e-3
+    m = SimpleNamespace(pose=pose, std_dof=np.full(6, np.nan), cov_dof=C.tolist())
+    got = measurement_covariance(m, cam_t1, HOLDER)
+    assert got.dtype == float and np.array_equal(got, C)
+    std = np.array([0.01, 0.01, 0.01, 0.02, 0.02, 0.05])
+    assert measurement_covariance(SimpleNamespace(pose=None, std_dof=std), cam_t1,
+                                  HOLDER) is None
+    assert measurement_covariance(SimpleNamespace(pose=pose, std_dof=std * np.nan), cam_t1,
+                                  HOLDER) is None
+    got = measurement_covariance(SimpleNamespace(pose=pose, std_dof=list(std)), cam_t1, HOLDER)
+    np.testing.assert_allclose(np.sqrt(np.diag(got)), std, rtol=1e-12)
