@@ -320,3 +320,29 @@ def test_radius_profile_cov_hand_computed():
                                rtol=1e-12)
     fit.profile = []
     assert np.all(radius_profile_cov(fit) == 0) and radius_profile_cov(fit).shape == (6, 6)
+
+
+def test_band_budget_takes_the_grasp_point_radius_and_inlier_residuals():
+    """``dm+b``'s budget: its covariance parts at the limits' grasp point (Monte Carlo of the
+    parts' sum there), the band's radius, and as residuals each inlier segment's signed
+    distance along its edge normal (weights > 0.5)."""
+    from types import SimpleNamespace
+
+    from cutterpose.solvers.edge_band import band_budget
+    from cutterpose.verdict import QualityLimits
+
+    C = correlated_dof_cov()
+    n = np.array([[1.0, 0.0], [0.0, -1.0], [0.6, 0.8], [-0.8, 0.6]])
+    band = SimpleNamespace(cov_parts={"noise": C}, radius_mm=1.25,
+                           weights=np.array([1.0, 0.5, 0.9, 0.2]),
+                           residuals_px=np.array([0.3, -2.0, -0.5, 4.0]),
+                           fit=SimpleNamespace(profiles=SimpleNamespace(normals_ideal=n)))
+    limits = QualityLimits(grasp_point_mm=tuple(GRASP_MM), tolerance=Tolerance(0.9, 0.2))
+    budget, r = band_budget(band, DOF, limits)
+    np.testing.assert_allclose(r, [[0.3, 0.0], [-0.3, -0.4]])
+    assert budget.radius_mm == 1.25
+    np.testing.assert_allclose(budget.grasp_point_mm, GRASP_MM)
+    pos, ang, _ = mc_figures(DOF, C, GRASP_MM)
+    assert budget.position_3sigma_mm == pytest.approx(pos, rel=0.015)
+    assert budget.angle_3sigma_deg == pytest.approx(ang, rel=0.015)
+    assert budget.exceeds(limits.tolerance)   # 0.9 mm is under this point's figure
