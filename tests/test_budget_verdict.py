@@ -217,3 +217,48 @@ def test_fit_offset_and_pose_std_against_a_refit(cam_t1):
     few = np.full_like(corners, np.nan)
     few[:3] = corners[:3]
     assert np.all(np.isnan(fit_offset(near, few, cam_t1, HOLDER, order="holder")))
+
+
+def test_corner_budget_parts_are_the_effects_they_name(case):
+    """The corner methods' budget holds exactly: ``noise`` ``s^2 (J^T J)^-1`` (finite-
+    difference J), ``method`` the step to the least-squares pose as 1 sigma of 2/3 of it,
+    ``wear`` the squared wear shifts, ``edge break`` the outer product of the shift of a
+    uniform outward offset of a third of the assumed break; no break part for a sharp edge."""
+    from cutterpose.solvers.corners import (
+        corner_budget,
+        edge_break_effect,
+        edge_wear_effect,
+        fit_offset,
+    )
+
+    cam, f, m = case
+    pose = m.pose
+    limits = replace(OPEN, edge_break_mm=None)                 # unknown: 1.5 mm assumed
+    b = corner_budget(m.estimate, f, cam, HOLDER, limits)
+    assert set(b.parts) == {"noise", "method", "wear", "edge break"}
+    step = fit_offset(pose, f.corners_ideal_px, cam, HOLDER, order=f.order)
+    assert np.abs(step).max() > 1e-4                            # RPnP is not the LS pose
+    np.testing.assert_allclose(b.parts["method"], 4.0 / 9.0 * np.outer(step, step),
+                               rtol=1e-9, atol=1e-15)
+    bias, _ = edge_wear_effect(pose, f, cam, HOLDER)
+    assert np.any(bias > 0)
+    np.testing.assert_allclose(b.parts["wear"], np.diag(bias ** 2), rtol=1e-12)
+    seen = np.isfinite(_residuals(case)).all(axis=1)
+    s = edge_break_effect(pose, cam, HOLDER, seen, 0.5)
+    np.testing.assert_allclose(b.parts["edge break"], np.outer(s, s), rtol=1e-6,
+                               atol=1e-12 * np.abs(s).max() ** 2)
+    r = _residuals(case)
+    P = HOLDER.points_holder_mm
+    h = np.array([1e-5] * 3 + [1e-4] * 3)
+    J = np.column_stack([(_project_dof(pose.dof + h[k] * np.eye(6)[k], P, cam.K)
+                          - _project_dof(pose.dof - h[k] * np.eye(6)[k], P, cam.K)).ravel()
+                         / (2 * h[k]) for k in range(6)])
+    np.testing.assert_allclose(b.parts["noise"],
+                               np.sum(r ** 2) / (r.size - 6) * np.linalg.inv(J.T @ J),
+                               rtol=1e-4, atol=1e-12)
+    sharp = corner_budget(m.estimate, f, cam, HOLDER, replace(OPEN, edge_break_mm=0.0))
+    assert "edge break" not in sharp.parts
+    small = corner_budget(m.estimate, f, cam, HOLDER, replace(OPEN, edge_break_mm=0.6))
+    s = edge_break_effect(pose, cam, HOLDER, seen, 0.2)
+    np.testing.assert_allclose(small.parts["edge break"], np.outer(s, s), rtol=1e-6,
+                               atol=1e-12 * np.abs(s).max() ** 2)
