@@ -34,7 +34,12 @@ def _diff(functions: dict, name: str) -> str:
     local = name.rsplit(".", 1)[-1]
     orig = functions.get(local.rsplit("__mutmut_", 1)[0] + "__mutmut_orig", "")
     lines = [ln for ln in (orig.splitlines(), functions.get(local, "").splitlines())]
-    return "\n".join(unified_diff(lines[0][1:], lines[1][1:], lineterm=""))
+    # the mutant's own name differs from the original's on the def line: compare without it,
+    # but keep the signature (a mutated default shows there)
+    sig = [ln.replace(local, "") for ln in lines[1][:1]]
+    orig_sig = [ln.replace(local.rsplit("__mutmut_", 1)[0] + "__mutmut_orig", "")
+                for ln in lines[0][:1]]
+    return "\n".join(unified_diff(orig_sig + lines[0][1:], sig + lines[1][1:], lineterm=""))
 
 
 def _changed_lines(diff: str) -> str:

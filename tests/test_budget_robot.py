@@ -215,3 +215,63 @@ def test_measurement_covariance_uses_a_given_one_and_refuses_without_a_pose(cam_
                                   HOLDER) is None
     got = measurement_covariance(SimpleNamespace(pose=pose, std_dof=list(std)), cam_t1, HOLDER)
     np.testing.assert_allclose(np.sqrt(np.diag(got)), std, rtol=1e-12)
+
+
+def test_covariance_checks_and_messages():
+    """A covariance must be a finite 6x6 PSD matrix; its tolerance on negative eigenvalues is
+    relative to the matrix's scale (1e-9 of its largest entry, at least 1e-9)."""
+    from cutterpose.errors import InputError
+    from cutterpose.robot.frames import cov_from_own_axes
+
+    T = Pose(np.eye(3), [0, 0, 0], "base", "cam")
+    with pytest.raises(InputError, match=r"^covariance of T_base_cam must be a finite 6x6"):
+        PoseCov(T, np.eye(5))
+    with pytest.raises(InputError, match=r"^covariance must be a finite 6x6 matrix, got shape "
+                                         r"\(6, 6\)"):
+        cov_from_own_axes(T, np.full((6, 6), np.nan))
+    with pytest.raises(InputError, match=r"^covariance of T_base_cam is not positive semi"):
+        PoseCov(T, np.diag([1.0, 1, 1, 1, 1, -0.5]))
+    big = np.diag([1e6] * 5 + [-1e-4])                         # -1e-4 > -1e-9 * 1e6: round-off
+    np.testing.assert_array_equal(PoseCov(T, big).cov, big)
+    with pytest.raises(InputError, match="not positive semi-definite"):
+        PoseCov(T, np.diag([0.5] * 5 + [-1.5e-9]))              # scale < 1: 1e-9 absolute
+    PoseCov(T, np.diag([0.5] * 5 + [-0.5e-9]))
+
+
+def test_ros_dict_keys_and_quaternion_sign():
+    """The ROS form: w >= 0 always (q and -q are the same turn), the keys the ROS message is
+    filled from."""
+    for deg in (10.0, 190.0, 350.0, -170.0):
+        R = _turn_z(deg)
+        d = PoseCov(Pose(R, [1000.0, -20.0, 5.0], "base", "grasp"),
+                    np.diag([0.01, 0.01, 0.04, 1e-6, 1e-6, 4e-6])).to_ros_dict()
+        q = np.array(d["orientation_xyzw"])
+        assert q[3] >= 0
+        np.testing.assert_allclose(Rotation.from_quat(q).as_matrix(), R, atol=1e-12)
+    assert set(d) == {"frame_id", "child_frame_id", "position_m", "position_mm",
+                      "orientation_xyzw", "covariance_ros", "covariance_units",
+                      "covariance_mm_rad", "position_3sigma_mm", "angle_3sigma_deg"}
+    assert d["covariance_units"].startswith("ROS: m^2, m*rad, rad^2; order x, y, z, rot x")
+    assert d["position_3sigma_mm"] == pytest.approx(0.6)
+    assert d["angle_3sigma_deg"] == pytest.approx(math.degrees(6e-3))
+    # w == 0 exactly (a half turn): kept as it is
+    d = PoseCov.exact(Pose(_turn_z(180.0), [0, 0, 0], "base", "grasp")).to_ros_dict()
+    assert d["orientation_xyzw"][3] == pytest.approx(0.0, abs=1e-15)
+
+
+def _turn_z(deg):
+    return Rotation.from_euler("z", deg, degrees=True).as_matrix()
+
+
+def test_no_usable_uncertainty_in_the_angle_alone():
+    """A finite position block but a non-finite rotation block: still no usable uncertainty,
+    with the tolerance and both figures reported."""
+    C = _blocks([0.01] * 3, [1e-8] * 3)
+    C[3:, 3:] = np.nan
+    v = judge(C, {"measurement": C}, np.eye(3), GraspTolerance(position_mm=2.0))
+    assert v.verdict == "retake" and v.reason == "the pose has no usable uncertainty"
+    assert v.position_3sigma_mm == pytest.approx(0.3) and v.angle_3sigma_deg == math.inf
+    assert v.tolerance == GraspTolerance(position_mm=2.0)
+    ok = judge(_blocks([0.01] * 3, [1e-10] * 3), {}, np.eye(3), GraspTolerance(position_mm=2.0))
+    assert ok.ok and ok.tolerance.position_mm == 2.0
+    assert ok.angle_3sigma_deg == pytest.approx(math.degrees(3e-5))

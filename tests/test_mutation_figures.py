@@ -84,6 +84,9 @@ def _rows():
                                              ("A", 0.5, 0.1, 0.5, 7.0))):
         rows += trial_rows(k, s, m, R, t, _turn([0, 0, 1], deg), t + [dx, 0, 0], ms)
     rows += trial_rows(9, 1.0, "B", R, t, np.full((3, 3), np.nan), np.full(3, np.nan), 8.0)
+    # a method seen only at sigma 0.5, and images (sigma unknown: NaN, summarised last)
+    rows += trial_rows(10, 0.5, "C", R, t, _turn([0, 0, 1], 0.3), t, 9.0)
+    rows += trial_rows(11, np.nan, "A", R, t, _turn([0, 0, 1], 0.2), t, 4.0)
     return rows
 
 
@@ -95,7 +98,7 @@ def test_trial_rows_columns():
     assert r["gamma_err_deg"] == pytest.approx(0.4) and r["rot_err_deg"] == pytest.approx(0.4)
     assert r["X_err_mm"] == 3.0 and r["trans_err_mm"] == 3.0 and r["Y_err_mm"] == 0.0
     assert rows[2]["failed"] == 1 and rows[2]["rot_err_deg"] == pytest.approx(3.0)
-    last = rows[-1]
+    last = rows[5]
     assert last["failed"] == 1 and math.isnan(last["rot_err_deg"]) and \
         math.isnan(last["X_err_mm"]) and math.isnan(last["trans_err_mm"])
 
@@ -105,8 +108,11 @@ def test_summary_hand_computed():
     95th percentile (linear interpolation) of the errors, median time; ascending sigma, methods
     in first-seen order."""
     stats = summarize(_rows())
-    assert [(s["sigma_px"], s["method"]) for s in stats] == [(0.5, "A"), (1.0, "A"),
-                                                              (1.0, "B")]
+    assert [(s["sigma_px"], s["method"]) for s in stats[:4]] == [(0.5, "A"), (0.5, "C"),
+                                                                  (1.0, "A"), (1.0, "B")]
+    assert math.isnan(stats[4]["sigma_px"]) and stats[4]["method"] == "A" and len(stats) == 5
+    assert stats[1]["rot_median"] == pytest.approx(0.3)
+    stats = [stats[0], stats[2], stats[3]]
     a = stats[1]
     assert (a["n"], a["failed"], a["no_pose"]) == (3, 1, 0)
     assert a["std"][5] == 0.0 and a["std"][3] == pytest.approx(math.sqrt(2.0))  # 1, 3
@@ -120,7 +126,7 @@ def test_summary_hand_computed():
     assert a["time_median_ms"] == 20.0
     b = stats[2]
     assert (b["n"], b["failed"], b["no_pose"]) == (2, 1, 1)
-    assert all(math.isnan(v) for v in b["std"])                  # one good trial: no std
+    assert len(b["std"]) == 6 and all(math.isnan(v) for v in b["std"])   # one good trial
     assert b["bias"][3] == -1.0 and b["rot_median"] == pytest.approx(0.1)
     assert b["time_median_ms"] == 6.5
     lone = stats[0]
@@ -128,4 +134,5 @@ def test_summary_hand_computed():
     # no rows of a (sigma, method): no entry; no good trial at all: NaN bias
     only_fail = [r for r in _rows() if r["method"] == "B" and r["failed"]]
     (s,) = summarize(only_fail)
-    assert all(math.isnan(v) for v in s["bias"]) and math.isnan(s["rot_median"])
+    assert len(s["bias"]) == 6 and all(math.isnan(v) for v in s["bias"])
+    assert len(s["std_all"]) == 6 and math.isnan(s["rot_median"])

@@ -121,6 +121,14 @@ def test_worn_edges_pose_shift_is_in_the_budget(worn):
     assert np.linalg.norm(err[3:]) < m.quality.budget.position_3sigma_mm
     wear_std = np.sqrt(np.diag(m.quality.budget.parts["wear"]))
     assert wear_std[5] > 0.8 * abs(err[5])
+    # the note names the shift per DOF, angles in deg and positions in mm
+    bias = m.quality.edge_bias_dof
+    names = ("alpha_deg", "beta_deg", "gamma_deg", "X_mm", "Y_mm", "Z_mm")
+    units = ("deg",) * 3 + ("mm",) * 3
+    assert m.quality.note == (
+        f"edges worn: contour position uncertain by ~{m.quality.edge_offset_px:.1f} px, pose "
+        f"may be biased by {', '.join(f'{n} {b:.2f} {u}' for n, b, u in zip(names, bias, units))}"
+        " (in the error budget)")
 
 
 def test_worn_edges_accepted_pose_is_covered(worn):
