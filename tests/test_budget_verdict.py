@@ -262,3 +262,32 @@ def test_corner_budget_parts_are_the_effects_they_name(case):
     s = edge_break_effect(pose, cam, HOLDER, seen, 0.2)
     np.testing.assert_allclose(small.parts["edge break"], np.outer(s, s), rtol=1e-6,
                                atol=1e-12 * np.abs(s).max() ** 2)
+
+
+def test_no_pose_or_no_budget_is_refused_with_the_reason(case):
+    """No estimate, a failed one, or a pose without a budget: refused, saying why; and the
+    verdict's JSON gives each figure (NaN as null)."""
+    import json
+
+    from cutterpose.solvers.estimate import PoseEstimate
+    from cutterpose.verdict import Quality, verdict
+
+    q = verdict(None, None, OPEN, ambiguity=0.4)
+    assert (q.ok, q.reason, q.ambiguity_ratio) == (False, "no pose: not solved", 0.4)
+    q = verdict(PoseEstimate.failure("rpnp", "too few corners"), None, OPEN)
+    assert (q.ok, q.reason) == (False, "no pose: too few corners")
+    m = case[2]
+    q = verdict(m.estimate, None, OPEN)
+    assert (q.ok, q.reason) == (False, "no pose: no error budget")
+    ok = verdict(m.estimate, m.quality.budget, OPEN, ambiguity=0.25, edge_offset_px=0.05)
+    assert ok.ok and ok.reason == "" and ok.edge_offset_px == 0.05 and ok.note == ""
+    d = json.loads(json.dumps(Quality(False, "x", 0.5, np.nan, np.array([0.1, 0, 0, 0, 0, 2.0]),
+                                      0.3, "n").to_dict()))
+    assert d == {"ok": False, "reason": "x", "rms_residual_px": 0.5, "ambiguity_ratio": None,
+                 "note": "n", "edge_offset_px": 0.3,
+                 "edge_bias": {"alpha_deg": 0.1, "beta_deg": 0.0, "gamma_deg": 0.0,
+                               "X_mm": 0.0, "Y_mm": 0.0, "Z_mm": 2.0}, "budget": None}
+    d = Quality(True, "", np.inf, 0.2, None, np.nan, budget=m.quality.budget).to_dict()
+    assert d["rms_residual_px"] is None and d["ambiguity_ratio"] == 0.2
+    assert d["edge_bias"] is None and d["edge_offset_px"] is None
+    assert d["budget"] == m.quality.budget.to_dict()
