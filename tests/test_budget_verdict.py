@@ -233,9 +233,15 @@ def test_corner_budget_parts_are_the_effects_they_name(case):
 
     cam, f, m = case
     pose = m.pose
-    limits = replace(OPEN, edge_break_mm=None)                 # unknown: 1.5 mm assumed
+    limits = replace(OPEN, edge_break_mm=None,                 # unknown: 1.5 mm assumed
+                     grasp_point_mm=(300.0, 0.0, 0.0), tolerance=Tolerance(100, 100, 2.0))
     b = corner_budget(m.estimate, f, cam, HOLDER, limits)
     assert set(b.parts) == {"noise", "method", "wear", "edge break"}
+    np.testing.assert_array_equal(b.grasp_point_mm, [300.0, 0.0, 0.0])
+    np.testing.assert_allclose(b.residuals_px, _residuals(case), atol=1e-9)
+    from test_budget import mc_figures
+    pos, _, _ = mc_figures(pose.dof, b.dof_cov, (300.0, 0.0, 0.0), k=2.0)
+    assert b.position_3sigma_mm == pytest.approx(pos, rel=0.015)
     step = fit_offset(pose, f.corners_ideal_px, cam, HOLDER, order=f.order)
     assert np.abs(step).max() > 1e-4                            # RPnP is not the LS pose
     np.testing.assert_allclose(b.parts["method"], 4.0 / 9.0 * np.outer(step, step),
