@@ -59,6 +59,8 @@ def main():
                 print(f"EXCEPTION {f} {t.spec()}")
                 traceback.print_exc(limit=4)
             times.append((time.time() - t0, f.name, img.shape, t.spec()))
+        print(f"{f.relative_to(f.parents[1])} {img.shape[1]}x{img.shape[0]}: "
+              f"{sum(dt for dt, *_ in times[-len(targets):]):.1f} s", flush=True)
     print(f"{n} images x {len(targets)} targets in {time.time() - t_all:.0f} s: {errors} "
           f"exceptions, {no_reason} failures without a reason")
     for s in SPECS:

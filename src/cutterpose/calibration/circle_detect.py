@@ -151,6 +151,10 @@ def find_circle_grid(gray: np.ndarray, cols: int, rows: int, d_over_s: float, *,
             detectors.append(_blob_detector(img.shape, extent, d_over_s, size, relaxed=True))
         detectors.append(cv2.SimpleBlobDetector_create())  # OpenCV's defaults
         for det in detectors:
+            # a textured scene gives thousands of blobs, on which OpenCV's grid search takes
+            # seconds per call and finds nothing: such a blob set is not a grid
+            if len(det.detect(img)) > max(10 * n, 300):
+                continue
             for flags in (flags0, flags0 | cv2.CALIB_CB_CLUSTERING):
                 try:
                     found, centres = cv2.findCirclesGrid(img, (cols, rows), flags=flags,
