@@ -25,6 +25,7 @@ from cutterpose.geometry.camera import default_camera
 from cutterpose.geometry.camera_files import load_camera, write_camera
 from cutterpose.geometry.holder import default_holder, load_holder
 from cutterpose.image import edge_model as em
+from cutterpose.image_set import load_image_set
 from cutterpose.service.config import load_cell
 from fuzz_support import (
     MemoryBound,
@@ -216,3 +217,19 @@ FOUND = [
 def test_found_holes_stay_mended(reader, name, doc):
     out = _read(reader, doc, name)
     assert isinstance(out, CutterposeError), out
+
+
+def _truth() -> dict:
+    cam = default_camera("synthetic").to_dict()
+    return {"camera": cam, "holder": HOLDER_DICT, "images": [
+        {"file": "0.png", "R_cam_holder": np.eye(3).tolist(), "t_cam_holder_mm": [0, 0, 600]}]}
+
+
+@settings(max_examples=examples(30))
+@given(doc=st.one_of(mutated(_truth()), json_trees))
+def test_image_set_truth(doc):
+    """An image set's truth.json (render-set; the image experiment, the edge look's
+    calibration)."""
+    folder = TMP / "set"
+    folder.mkdir(exist_ok=True)
+    _read(lambda p: load_image_set(p.parent), doc, "set/truth.json")
