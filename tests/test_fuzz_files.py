@@ -203,6 +203,8 @@ def _with(doc: dict, path: tuple, value):
 FOUND = [
     (load_holder, "holder.json", _with(HOLDER_DICT, ("outer_rectangle", "length_x"), 10 ** 400)),
     (load_plate, "plate.json", _with(PLATE_DICT, ("rows",), math.inf)),
+    (load_plate, "plate.json", _with(PLATE_DICT, ("cols",), 10 ** 400)),
+    (load_plate, "plate.json", _with(PLATE_DICT, ("cols",), 10 ** 9)),
     (load_handeye, "handeye.json", _with(HANDEYE_DICT, ("T_flange_cam", 0, 0), 10 ** 400)),
     (load_edge_look, "look.json", _with(LOOK_DICT, ("look", "face_albedo"), 10 ** 400)),
     (load_camera, "cam.json", _with(CAMERA_DICT, ("image_size_px",), [math.inf, 3008])),

@@ -197,11 +197,14 @@ class CirclePlate:
                 fields[k] = float(fields[k])
         except (TypeError, ValueError, OverflowError):
             raise ModelFileError(f"{where}: plate fields must be numbers") from None
+        if not all(1 <= fields[k] <= 1000 for k in ("rows", "cols")):
+            raise ModelFileError(f"{where}: rows and cols must be from 1 to 1000, got "
+                                 f"{fields['rows']} x {fields['cols']}")
         if "diameter_mm" not in fields:
             fields["diameter_mm"] = 0.5 * fields["spacing_mm"]
         try:
             return cls(**fields)
-        except InputError as e:
+        except (InputError, OverflowError) as e:
             raise ModelFileError(f"{where}: {e}") from None
 
 
