@@ -346,3 +346,22 @@ def test_band_budget_takes_the_grasp_point_radius_and_inlier_residuals():
     assert budget.position_3sigma_mm == pytest.approx(pos, rel=0.015)
     assert budget.angle_3sigma_deg == pytest.approx(ang, rel=0.015)
     assert budget.exceeds(limits.tolerance)   # 0.9 mm is under this point's figure
+
+
+def test_lever_arm_entries_by_hand():
+    """Each entry of ``[p]x`` by hand: a pure turn about x or y leaves the origin where it is;
+    at ``p = (0, 200, 0)`` a turn ``w`` about x moves the point by ``200 w`` along z, which a
+    translation along z fully correlated with it cancels (and doubles when anti-correlated)."""
+    s = 0.05                                                 # deg
+    for k in (0, 1, 2):
+        C = np.zeros((6, 6))
+        C[k, k] = s ** 2
+        b = budget_from_dof_cov({"n": C}, [0, 0, 0, 0, 0, 600])
+        assert b.position_3sigma_mm == pytest.approx(0.0, abs=1e-12)
+    lever = 200 * math.radians(s)                           # mm of z per sigma of alpha
+    for rho, expect in ((-1.0, 0.0), (1.0, 2 * lever)):
+        C = np.zeros((6, 6))
+        C[0, 0], C[5, 5] = s ** 2, lever ** 2
+        C[0, 5] = C[5, 0] = rho * s * lever
+        b = budget_from_dof_cov({"n": C}, [0, 0, 0, 0, 0, 600], (0.0, 200.0, 0.0))
+        assert b.position_3sigma_mm == pytest.approx(3 * expect, abs=1e-9)
