@@ -95,15 +95,7 @@ def test_core_does_not_import_its_users():
 
 #: private names still imported across modules, each with its reason; the test fails on any
 #: other, and on an entry here that no longer occurs (so the list only shrinks)
-KNOWN_PRIVATE_IMPORTS = {
-    # calibration/ is being reworked by its owners (the calibration targets), who make these
-    # public seams there
-    ("src/cutterpose/calibration/boards.py", "cutterpose.calibration.circle_grids._no_more"),
-    ("src/cutterpose/calibration/boards.py", "cutterpose.calibration.circle_grids._positive"),
-    ("src/cutterpose/calibration/boards.py", "cutterpose.calibration.targets._parse_grid_size"),
-    ("src/cutterpose/calibration/circle_grids.py",
-     "cutterpose.calibration.targets._parse_grid_size"),
-}
+KNOWN_PRIVATE_IMPORTS: set = set()
 
 
 def _private(name: str) -> bool:

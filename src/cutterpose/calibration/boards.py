@@ -24,14 +24,16 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..errors import ImageError, InputError, ModelFileError
+from ..errors import ImageError, InputError
 from .circle_detect import sample_gray, to_gray_u8
-from .circle_grids import _no_more, _positive
 from .targets import (
     Target,
     TargetDetection,
-    _parse_grid_size,
     choose_order,
+    description_fields,
+    no_more_modifiers,
+    parse_grid_size,
+    positive_number,
     register_target,
     symmetry_permutations,
 )
@@ -128,21 +130,17 @@ class ChessboardTarget(Target):
 
     @classmethod
     def from_dict(cls, d, where="target"):
-        try:
-            return cls(int(d["cols"]), int(d["rows"]), _positive(d["square_mm"], "square_mm"))
-        except KeyError as e:
-            raise ModelFileError(f"{where}: missing field {e}") from None
-        except (TypeError, ValueError, InputError, OverflowError) as e:
-            raise ModelFileError(f"{where}: {e}") from None
+        with description_fields(where):
+            return cls(int(d["cols"]), int(d["rows"]), positive_number(d["square_mm"], "square_mm"))
 
     @classmethod
     def from_spec(cls, fields, options):
         if len(fields) != 2:
             raise InputError("chessboard target: give chessboard:COLSxROWS:SQUARE_MM with the "
                              "inner corners (e.g. chessboard:9x6:25)")
-        cols, rows = _parse_grid_size(fields[0], "chessboard target")
-        _no_more(dict(options), "chessboard")
-        return cls(cols, rows, _positive(fields[1], "chessboard square"))
+        cols, rows = parse_grid_size(fields[0], "chessboard target")
+        no_more_modifiers(dict(options), "chessboard")
+        return cls(cols, rows, positive_number(fields[1], "chessboard square"))
 
     def spec(self) -> str:
         return f"{self.kind}:{self.cols}x{self.rows}:{self.square_mm:g}"
@@ -322,23 +320,19 @@ class CharucoTarget(Target):
 
     @classmethod
     def from_dict(cls, d, where="target"):
-        try:
+        with description_fields(where):
             return cls(int(d["cols"]), int(d["rows"]), float(d["square_mm"]),
                        float(d["marker_mm"]), str(d.get("dictionary", "DICT_5X5_100")))
-        except KeyError as e:
-            raise ModelFileError(f"{where}: missing field {e}") from None
-        except (TypeError, ValueError, InputError, OverflowError) as e:
-            raise ModelFileError(f"{where}: {e}") from None
 
     @classmethod
     def from_spec(cls, fields, options):
         if len(fields) != 4:
             raise InputError("charuco target: give charuco:COLSxROWS:SQUARE_MM:MARKER_MM:DICT "
                              "with the squares (e.g. charuco:5x7:30:22:DICT_5X5_100)")
-        cols, rows = _parse_grid_size(fields[0], "charuco target")
-        _no_more(dict(options), "charuco")
-        return cls(cols, rows, _positive(fields[1], "charuco square"),
-                   _positive(fields[2], "charuco marker"), fields[3])
+        cols, rows = parse_grid_size(fields[0], "charuco target")
+        no_more_modifiers(dict(options), "charuco")
+        return cls(cols, rows, positive_number(fields[1], "charuco square"),
+                   positive_number(fields[2], "charuco marker"), fields[3])
 
     def spec(self) -> str:
         return (f"{self.kind}:{self.cols}x{self.rows}:{self.square_mm:g}:{self.marker_mm:g}:"

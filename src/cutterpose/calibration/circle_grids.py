@@ -26,7 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..errors import FeatureError, ImageError, InputError, ModelFileError
+from ..errors import FeatureError, ImageError, InputError
 from .circle_detect import (
     dark_blob_areas,
     detect_plate,
@@ -39,8 +39,11 @@ from .plate import CirclePlate
 from .targets import (
     Target,
     TargetDetection,
-    _parse_grid_size,
     choose_order,
+    description_fields,
+    no_more_modifiers,
+    parse_grid_size,
+    positive_number,
     register_target,
     symmetry_permutations,
 )
@@ -49,16 +52,6 @@ __all__ = ["CaltabTarget", "CircleGridTarget", "AsymmetricCircleGridTarget"]
 
 #: the origin dot must look this much larger (area) than the median circle
 ORIGIN_DOT_MIN_AREA_RATIO = 1.3
-
-
-def _positive(v, what: str) -> float:
-    try:
-        x = float(v)
-    except (TypeError, ValueError, OverflowError):
-        raise InputError(f"{what} must be a number, got {v!r}") from None
-    if not x > 0:
-        raise InputError(f"{what} must be positive, got {v!r}")
-    return x
 
 
 @register_target
@@ -109,10 +102,10 @@ class CaltabTarget(Target):
     def from_spec(cls, fields, options):
         if len(fields) != 2:
             raise InputError("caltab target: give caltab:COLSxROWS:SPACING_MM (e.g. caltab:7x7:30)")
-        cols, rows = _parse_grid_size(fields[0], "caltab target")
-        s = _positive(fields[1], "caltab spacing")
-        d = _positive(options.pop("diameter", 0.5 * s), "caltab diameter")
-        _no_more(options, "caltab")
+        cols, rows = parse_grid_size(fields[0], "caltab target")
+        s = positive_number(fields[1], "caltab spacing")
+        d = positive_number(options.pop("diameter", 0.5 * s), "caltab diameter")
+        no_more_modifiers(options, "caltab")
         try:
             return cls(CirclePlate(rows=rows, cols=cols, spacing_mm=s, diameter_mm=d))
         except InputError as e:
@@ -123,11 +116,6 @@ class CaltabTarget(Target):
         out = f"caltab:{p.cols}x{p.rows}:{p.spacing_mm:g}"
         return out + (f":diameter={p.diameter_mm:g}" if p.diameter_mm != 0.5 * p.spacing_mm
                       else "")
-
-
-def _no_more(options: dict, what: str) -> None:
-    if options:
-        raise InputError(f"{what} target: unknown modifier(s) {', '.join(sorted(options))}")
 
 
 @register_target
@@ -282,30 +270,26 @@ class CircleGridTarget(Target):
 
     @classmethod
     def from_dict(cls, d, where="target"):
-        try:
+        with description_fields(where):
             return cls(int(d["cols"]), int(d["rows"]), float(d["spacing_mm"]),
                        _opt_float(d.get("diameter_mm")), bool(d.get("light", False)),
                        bool(d.get("origin_dot", False)), _opt_float(d.get("origin_diameter_mm")))
-        except KeyError as e:
-            raise ModelFileError(f"{where}: missing field {e}") from None
-        except (TypeError, ValueError, InputError, OverflowError) as e:
-            raise ModelFileError(f"{where}: {e}") from None
 
     @classmethod
     def from_spec(cls, fields, options):
         if len(fields) != 2:
             raise InputError(f"{cls.kind} target: give {cls.kind}:COLSxROWS:SPACING_MM"
                              f"[:light][:origin-dot] (e.g. {cls.kind}:4x11:20)")
-        cols, rows = _parse_grid_size(fields[0], f"{cls.kind} target")
-        s = _positive(fields[1], f"{cls.kind} spacing")
+        cols, rows = parse_grid_size(fields[0], f"{cls.kind} target")
+        s = positive_number(fields[1], f"{cls.kind} spacing")
         opts = dict(options)
         light = bool(opts.pop("light", False))
         origin = bool(opts.pop("origin-dot", False))
         d = opts.pop("diameter", None)
         od = opts.pop("origin-diameter", None)
-        _no_more(opts, cls.kind)
-        return cls(cols, rows, s, None if d is None else _positive(d, "diameter"), light,
-                   origin, None if od is None else _positive(od, "origin-diameter"))
+        no_more_modifiers(opts, cls.kind)
+        return cls(cols, rows, s, None if d is None else positive_number(d, "diameter"), light,
+                   origin, None if od is None else positive_number(od, "origin-diameter"))
 
     def spec(self) -> str:
         out = f"{self.kind}:{self.cols}x{self.rows}:{self.spacing_mm:g}"

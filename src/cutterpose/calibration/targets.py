@@ -43,6 +43,7 @@ from __future__ import annotations
 import importlib
 import json
 from abc import ABC, abstractmethod
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import ClassVar
@@ -209,7 +210,7 @@ def _load_builtin_kinds() -> None:
 
 # ------------------------------------------------------------------------------------------
 # specs and files
-def _parse_grid_size(text: str, what: str) -> tuple[int, int]:
+def parse_grid_size(text: str, what: str) -> tuple[int, int]:
     try:
         cols, rows = (int(v) for v in text.lower().split("x"))
     except ValueError:
@@ -218,6 +219,34 @@ def _parse_grid_size(text: str, what: str) -> tuple[int, int]:
     if cols < 1 or rows < 1:
         raise InputError(f"{what}: the size must be positive, got {text!r}")
     return cols, rows
+
+
+def positive_number(v, what: str) -> float:
+    """``v`` as a positive float, or an InputError naming ``what``."""
+    try:
+        x = float(v)
+    except (TypeError, ValueError, OverflowError):
+        raise InputError(f"{what} must be a number, got {v!r}") from None
+    if not x > 0:
+        raise InputError(f"{what} must be positive, got {v!r}")
+    return x
+
+
+def no_more_modifiers(options: dict, what: str) -> None:
+    """Refuse modifiers a target kind does not know."""
+    if options:
+        raise InputError(f"{what} target: unknown modifier(s) {', '.join(sorted(options))}")
+
+
+@contextmanager
+def description_fields(where: str):
+    """Turn a missing or malformed field of a target description into one ModelFileError."""
+    try:
+        yield
+    except KeyError as e:
+        raise ModelFileError(f"{where}: missing field {e}") from None
+    except (TypeError, ValueError, InputError, OverflowError) as e:
+        raise ModelFileError(f"{where}: {e}") from None
 
 
 def parse_spec_fields(spec: str) -> tuple[str, list[str], dict]:
